@@ -1,0 +1,143 @@
+"""Events to per-pixel signed counts: one window, time bins, and the bins of every exposure.
+
+All counting is vectorised (searchsorted + bincount); nothing loops over events in Python.
+A bin is half-open: bin j holds the events with boundary_j <= t < boundary_{j+1}.
+"""
+
+from __future__ import annotations
+
+from contextlib import nullcontext
+from pathlib import Path
+from typing import Sequence, Union
+
+import numpy as np
+
+from edygs_ns.events.exposures import Exposure
+from edygs_ns.events.readers import ArrayEventSource, EventSource
+from edygs_ns.events.types import EventArray
+
+#: Fewest exposures for which exposure_bins shows a progress bar.
+PROGRESS_MIN_EXPOSURES = 50
+#: Fewest latent frames per exposure (one bin needs two latents).
+MIN_LATENTS = 2
+
+
+def _pixel_index(events: EventArray) -> np.ndarray:
+    """[E] int64 flat pixel index y * W + x."""
+    return events.y.astype(np.int64) * events.width + events.x.astype(np.int64)
+
+
+def accumulate(events: EventArray, t_start_us: int, t_end_us: int) -> np.ndarray:
+    """Signed event count per pixel over one time window.
+
+    Args:
+        events: E events, sorted by t.
+        t_start_us: window start (inclusive), µs.
+        t_end_us: window end (exclusive), µs.
+
+    Returns:
+        [H, W] float32, the sum of polarities of the events with t_start_us <= t < t_end_us.
+    """
+    window = events.time_slice(t_start_us, t_end_us)
+    counts = np.bincount(_pixel_index(window), weights=window.p, minlength=events.height * events.width)
+    return counts.astype(np.float32).reshape(events.height, events.width)
+
+
+def bin_events(events: EventArray, boundaries_us: np.ndarray) -> np.ndarray:
+    """Signed event count per pixel in each of B consecutive time bins.
+
+    Events are sorted by t, so one searchsorted of the B+1 boundaries into t splits them into
+    bins; one bincount over (bin * H * W + pixel) then counts them straight into [B, H, W]
+    order (measured 1.3-1.5x faster than indexing pixel * B + bin and transposing).
+
+    Args:
+        events: E events, sorted by t.
+        boundaries_us: [B+1] int64 strictly increasing bin edges, µs.
+
+    Returns:
+        [B, H, W] float32; entry j sums the polarities with boundaries[j] <= t < boundaries[j+1].
+
+    Raises:
+        ValueError: boundaries not one-dimensional, fewer than two, or not strictly increasing.
+    """
+    edges = np.asarray(boundaries_us)
+    if edges.ndim != 1 or len(edges) < 2:
+        raise ValueError(f"bin_events: boundaries_us must be a 1-D array of at least 2 edges, got shape {edges.shape}")
+    if np.any(np.diff(edges) <= 0):
+        raise ValueError(f"bin_events: boundaries_us must strictly increase, got {edges.tolist()}")
+    n_bins = len(edges) - 1
+    h, w = events.sensor_size
+    cuts = np.searchsorted(events.t, edges, side="left")
+    first, last = int(cuts[0]), int(cuts[-1])
+    bin_offset = np.repeat(np.arange(n_bins, dtype=np.int64) * (h * w), np.diff(cuts))
+    window = EventArray(
+        events.x[first:last], events.y[first:last], events.t[first:last], events.p[first:last], events.sensor_size
+    )
+    flat = _pixel_index(window) + bin_offset
+    counts = np.bincount(flat, weights=window.p, minlength=n_bins * h * w)
+    return counts.astype(np.float32).reshape(n_bins, h, w)
+
+
+def latent_times_us(start_us: int, end_us: int, k: int) -> np.ndarray:
+    """k latent instants evenly spaced over an exposure, the first at its start, the last at its end.
+
+    Args:
+        start_us: exposure start, µs.
+        end_us: exposure end, µs.
+        k: number of latent frames (>= 2).
+
+    Returns:
+        [k] int64 µs, strictly increasing, rounded to the nearest µs.
+
+    Raises:
+        ValueError: k < 2, or the exposure is shorter than k - 1 µs.
+    """
+    if k < MIN_LATENTS:
+        raise ValueError(f"latent_times_us: k must be at least {MIN_LATENTS}, got {k}")
+    start, span, steps = int(start_us), int(end_us) - int(start_us), k - 1
+    if span < steps:
+        raise ValueError(f"latent_times_us: exposure [{start_us}, {end_us}] µs is too short for {k} distinct latent times")
+    j = np.arange(k, dtype=np.int64)
+    # Integer round-half-up of start + span * j / steps, exact at both ends.
+    return start + (2 * span * j + steps) // (2 * steps)
+
+
+def exposure_bins(
+    source: Union[EventSource, EventArray], exposures: Sequence[Exposure], k: int
+) -> np.ndarray:
+    """Event bins between the k latent times of every exposure, one exposure window at a time.
+
+    Args:
+        source: the events (an EventSource reads only each exposure's window from disk).
+        exposures: n exposures.
+        k: latent frames per exposure (k - 1 bins).
+
+    Returns:
+        [n, k-1, H, W] float32 signed counts; bin j of exposure i spans latent j to j+1.
+
+    Raises:
+        ValueError: an exposure window holds no events at all ("empty exposure window", naming
+            the frame), or an exposure is too short for k latents.
+    """
+    src = ArrayEventSource(source) if isinstance(source, EventArray) else source
+    h, w = src.sensor_size
+    out = np.zeros((len(exposures), k - 1, h, w), dtype=np.float32)
+    progress = None
+    if len(exposures) >= PROGRESS_MIN_EXPOSURES:
+        from nerfstudio.utils.rich_utils import get_progress
+
+        progress = get_progress("Binning events per exposure")
+    with progress if progress is not None else nullcontext():
+        indices = range(len(exposures))
+        iterator = progress.track(indices, total=len(exposures)) if progress is not None else indices
+        for i in iterator:
+            e = exposures[i]
+            times = latent_times_us(e.start_us, e.end_us, k)
+            window = src.window(int(times[0]), int(times[-1]))
+            if len(window) == 0:
+                raise ValueError(
+                    f"{src.name}: empty exposure window for frame {e.frame} ({Path(e.file).name}): no events in "
+                    f"[{e.start_us}, {e.end_us}) µs; check the event time base (t_offset) against the exposure table"
+                )
+            out[i] = bin_events(window, times)
+    return out

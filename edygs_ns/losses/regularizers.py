@@ -1,0 +1,37 @@
+"""Mask and motion regularisers of EDyGS (paper Eq. 4, 6-8)."""
+
+from __future__ import annotations
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+
+def mask_l1(mask: Float[Tensor, "*B H W 1"]) -> Tensor:
+    """‖M‖₁ (mean): biases the rendered motion mask towards static (Eq. 4)."""
+    return mask.abs().mean()
+
+
+def mask_consistency(mask: Float[Tensor, "*B H W 1"], reference: Float[Tensor, "*B H W 1"]) -> Tensor:
+    """‖M − M̂‖₁ (mean) against the mask rendered at the end of the static phase (Eq. 8)."""
+    if mask.shape != reference.shape:
+        raise ValueError(f"mask_consistency: mask {tuple(mask.shape)} vs reference {tuple(reference.shape)}")
+    return (mask - reference.detach()).abs().mean()
+
+
+def motion_loss(
+    d_xyz: Float[Tensor, "N 3"],
+    d_rot: Float[Tensor, "N 4"],
+    d_scale: Float[Tensor, "N 3"],
+    mask: Float[Tensor, "N"],
+) -> Tensor:
+    """‖(1−m)Δμ‖² + ‖(1−m)Δr‖² + ‖(1−m)Δs‖², averaged over Gaussians (Eq. 6-7).
+
+    Args:
+        mask: per-Gaussian dynamic probability m in [0, 1].
+    """
+    if d_xyz.shape[0] == 0:
+        return d_xyz.sum()
+    static = (1.0 - mask)[:, None]
+    total = (static * d_xyz).square().sum(-1) + (static * d_rot).square().sum(-1) + (static * d_scale).square().sum(-1)
+    return total.mean()

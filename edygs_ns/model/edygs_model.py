@@ -1,0 +1,415 @@
+"""The EDyGS model: motion-mask Gaussians + deformation field + per-latent pose refinement.
+
+The model orchestrates; the maths lives in ``losses/``, ``model/deformation.py``,
+``model/appearance.py`` and the rasteriser backends; what trains when lives in
+``training/schedule.py``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Literal, Optional, Tuple, Type, Union
+
+import torch
+from torch import Tensor
+from torch.nn import Parameter
+
+from nerfstudio.cameras.camera_optimizers import CameraOptimizer, CameraOptimizerConfig
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.models.base_model import Model, ModelConfig
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from edygs_ns.events.color import decode_to_linear
+from edygs_ns.losses.events import DEFAULT_LOG_EPS, event_loss
+from edygs_ns.losses.photometric import l1_dssim
+from edygs_ns.losses.regularizers import mask_consistency, mask_l1, motion_loss
+from edygs_ns.model.appearance import MAX_SH_DEGREE, sh_to_rgb
+from edygs_ns.model.deformation import DeformationConfig, DeformationField
+from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES, init_gaussians
+from edygs_ns.model.strategy import DensifyConfig, make_strategy, strategy_info
+from edygs_ns.render.contract import RasterOutputs, select_backend
+from edygs_ns.training.schedule import (
+    CAMERA_GROUP,
+    DEFORMATION_GROUP,
+    MASK_GROUP,
+    Phase,
+    PhaseSchedule,
+    is_active,
+    is_trainable,
+    phase_at,
+)
+
+#: OpenGL (nerfstudio) -> OpenCV camera axes: flip y and z.
+GL_TO_CV = (1.0, -1.0, -1.0)
+#: smallest scale after adding the deformation's scale offset (world units).
+MIN_DEFORMED_SCALE = 1e-6
+
+
+@dataclass
+class EdygsModelConfig(ModelConfig):
+    """EDyGS: every knob of the model, the losses and the phase schedule."""
+
+    _target: Type = field(default_factory=lambda: EdygsModel)
+    schedule: PhaseSchedule = field(default_factory=PhaseSchedule)
+    """lengths of the pose-init and static phases (the dynamic phase runs to the end)"""
+    deformation: DeformationConfig = field(default_factory=DeformationConfig)
+    """shape of the deformation MLP"""
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+    """densification / pruning rules (3DGS)"""
+    camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="SO3xR3"))
+    """per-latent-frame pose refinement (nerfstudio's camera optimiser)"""
+    rasterizer: Literal["auto", "torch", "gsplat"] = "auto"
+    """rasteriser backend: auto picks gsplat on CUDA and the torch reference on CPU"""
+    sh_degree: int = 3
+    """maximum spherical-harmonics degree"""
+    sh_degree_interval: int = 1000
+    """raise the SH degree by one every this many iterations"""
+    init_opacity: float = 0.1
+    """opacity of new Gaussians"""
+    init_mask: float = 0.1
+    """initial motion-mask value m of every Gaussian (biased towards static)"""
+    num_random: int = 5000
+    """Gaussians drawn uniformly in the scene box when the data has no points"""
+    background_color: Literal["black", "white"] = "black"
+    """background colour of renders (the motion mask's background is 0)"""
+    ssim_lambda: float = 0.2
+    """λ of L = (1 − λ) L1 + λ D-SSIM"""
+    lambda_edi: float = 1.0
+    """weight of L(Ĉ, EDI latent)"""
+    lambda_edi_static: float = 1.0
+    """weight of the static term L(Ĉ(1 − M), EDI(1 − M)) (static phase)"""
+    lambda_event: float = 0.5
+    """weight of the event loss between consecutive latent renders"""
+    lambda_mask: float = 0.02
+    """weight of ‖M‖₁ (static phase)"""
+    lambda_mask_consistency: float = 0.1
+    """weight of ‖M − M̂‖₁ against the static-phase masks (dynamic phase)"""
+    lambda_motion: float = 0.1
+    """weight of the motion loss on the static part of the deformation (dynamic phase)"""
+    event_log_eps: float = DEFAULT_LOG_EPS
+    """ε in ln(I + ε) of the event loss"""
+    use_edi_loss: bool = True
+    """ablation switch: supervise with the EDI latent images"""
+    use_event_loss: bool = True
+    """ablation switch: supervise with the events between consecutive latents"""
+    optimize_poses: bool = True
+    """ablation switch: refine the per-latent camera poses"""
+    use_motion_mask: bool = True
+    """ablation switch: the motion-mask field (static term, mask losses, mask-gated deformation)"""
+    use_deformation: bool = True
+    """ablation switch: the deformation field in the dynamic phase"""
+    deform_mask_threshold: float = 0.05
+    """evaluate the deformation MLP only on Gaussians with m >= this (0 = every Gaussian). The motion
+    loss pushes (1 − m)Δ to zero, so Gaussians below the threshold would get a near-zero offset anyway;
+    skipping them keeps the method's behaviour and makes the MLP affordable on CPU"""
+    detach_mask_in_motion_loss: bool = True
+    """the motion loss uses m as given by the mask field (no gradient into m), so it cannot be
+    lowered by calling static Gaussians dynamic"""
+    ablation: Optional[Literal["events-only", "edi-only", "edi-events", "edi-events-pose", "full", "blurry"]] = None
+    """one-flag preset of the switches above reproducing a row of the paper's Table 2
+    (configs/ablations.py); None keeps the switches as given"""
+
+    def __post_init__(self) -> None:
+        from edygs_ns.configs.ablations import apply_ablation
+
+        apply_ablation(self)
+
+
+class EdygsModel(Model):
+    """Motion-mask Gaussians with a deformation field, trained in three phases."""
+
+    config: EdygsModelConfig
+
+    def __init__(self, *args, seed_points: Optional[Tuple[Tensor, Tensor]] = None, **kwargs) -> None:
+        self.seed_points = seed_points
+        super().__init__(*args, **kwargs)
+
+    # ------------------------------------------------------------------ set-up
+    def populate_modules(self) -> None:
+        if self.config.sh_degree > MAX_SH_DEGREE:
+            raise ValueError(f"sh_degree must be <= {MAX_SH_DEGREE}, got {self.config.sh_degree}")
+        metadata = self.kwargs.get("metadata", {}) or {}
+        self.theta = float(metadata.get("theta", 0.2))
+        self.color_space = str(metadata.get("color_space", "linear"))
+        if self.seed_points is not None and len(self.seed_points[0]) > 0:
+            points, colors = self.seed_points
+        else:
+            aabb = self.scene_box.aabb
+            generator = torch.Generator().manual_seed(0)
+            points = aabb[0] + (aabb[1] - aabb[0]) * torch.rand(self.config.num_random, 3, generator=generator)
+            colors = None
+        self.gauss_params = init_gaussians(
+            points, colors, self.config.sh_degree, self.config.init_opacity, self.config.init_mask
+        )
+        self.deformation = DeformationField(self.config.deformation)
+        camera_config = self.config.camera_optimizer
+        if not self.config.optimize_poses:
+            camera_config = CameraOptimizerConfig(mode="off")
+        self.camera_optimizer: CameraOptimizer = camera_config.setup(num_cameras=self.num_train_data, device="cpu")
+        self.strategy = make_strategy(self.config.densify)
+        self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
+        # motion masks M̂ rendered at the end of the static phase, one per training latent [N, H, W]
+        self.register_buffer("static_masks", torch.zeros(0, 0, 0, dtype=torch.float16))
+        self.step = 0
+        self.optimizers: Dict[str, torch.optim.Optimizer] = {}
+        self._info: Optional[dict] = None
+        self._train_cameras: Optional[Cameras] = None
+
+    @property
+    def num_points(self) -> int:
+        return int(self.gauss_params["means"].shape[0])
+
+    @property
+    def phase(self) -> Phase:
+        return phase_at(self.step, self.config.schedule)
+
+    def get_param_groups(self) -> Dict[str, List[Parameter]]:
+        groups = {name: [self.gauss_params[name]] for name in GAUSSIAN_ATTRIBUTES}
+        groups[DEFORMATION_GROUP] = list(self.deformation.parameters())
+        self.camera_optimizer.get_param_groups(param_groups=groups)
+        return groups
+
+    def load_state_dict(self, state_dict, strict: bool = True):  # type: ignore[override]
+        """Resize Gaussians and the static-mask buffer to the checkpoint, keeping Parameter objects
+        (the optimizers already hold them), then load."""
+        for name in GAUSSIAN_ATTRIBUTES:
+            key = f"gauss_params.{name}"
+            if key in state_dict:
+                param = self.gauss_params[name]
+                param.data = torch.zeros(state_dict[key].shape, dtype=param.dtype, device=param.device)
+        if "static_masks" in state_dict:
+            self.static_masks = torch.zeros_like(state_dict["static_masks"], device=self.static_masks.device)
+        return super().load_state_dict(state_dict, strict=strict)
+
+    # ------------------------------------------------------------ callbacks
+    def get_training_callbacks(self, attrs: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        self._train_cameras = attrs.pipeline.datamanager.train_dataset.cameras  # type: ignore[union-attr]
+        return [
+            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self.before_step, args=[attrs.optimizers]),
+            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.after_step),
+        ]
+
+    def before_step(self, optimizers, step: int) -> None:
+        """Record the step and apply the phase: what trains, and the static masks at the switch."""
+        self.step = step
+        self.optimizers = optimizers.optimizers
+        self.apply_phase(self.phase)
+        if self.phase is Phase.DYNAMIC and self.config.use_motion_mask and self.static_masks.numel() == 0:
+            self.capture_static_masks()
+
+    def after_step(self, step: int) -> None:
+        if self._info is None:
+            return
+        self.strategy.step_post_backward(
+            params=self.gauss_params, optimizers=self.optimizers, state=self.strategy_state, step=step,
+            info=self._info, packed=False,
+        )
+        self._info = None
+
+    def trainable_groups(self, phase: Phase) -> Dict[str, bool]:
+        """Whether each parameter group trains in ``phase``, after the ablation switches."""
+        switches = {
+            MASK_GROUP: self.config.use_motion_mask,
+            CAMERA_GROUP: self.config.optimize_poses,
+            DEFORMATION_GROUP: self.config.use_deformation,
+        }
+        groups = list(GAUSSIAN_ATTRIBUTES) + [DEFORMATION_GROUP, CAMERA_GROUP]
+        return {g: is_trainable(g, phase) and switches.get(g, True) for g in groups}
+
+    def apply_phase(self, phase: Phase) -> None:
+        """Set requires_grad of every parameter group for ``phase`` (frozen groups get no update)."""
+        flags = self.trainable_groups(phase)
+        for name in GAUSSIAN_ATTRIBUTES:
+            self.gauss_params[name].requires_grad_(flags[name])
+        for p in self.deformation.parameters():
+            p.requires_grad_(flags[DEFORMATION_GROUP])
+        for p in self.camera_optimizer.parameters():
+            p.requires_grad_(flags[CAMERA_GROUP])
+
+    @torch.no_grad()
+    def capture_static_masks(self) -> None:
+        """Render M̂ for every training latent at the refined poses (start of the dynamic phase)."""
+        if self._train_cameras is None:
+            return
+        cameras = self._train_cameras.to(self.device)
+        masks = []
+        for i in range(cameras.shape[0]):
+            camera = cameras[i : i + 1]
+            camera.metadata = {"cam_idx": i}
+            masks.append(self.render_cameras(camera, deform=False)["mask"][0, ..., 0].half())
+        self.static_masks = torch.stack(masks)
+        CONSOLE.log(f"[edygs] dynamic phase from step {self.step}: stored {len(masks)} static-phase motion masks")
+
+    # ------------------------------------------------------------ rendering
+    def camera_indices(self, camera: Cameras) -> Optional[Tensor]:
+        """Training-camera index of each camera [C], or None (viewer / eval cameras)."""
+        if camera.metadata is None or "cam_idx" not in camera.metadata:
+            return None
+        return torch.as_tensor(camera.metadata["cam_idx"], dtype=torch.long).reshape(-1).cpu()
+
+    def camera_to_worlds(self, camera: Cameras) -> Tensor:
+        """[C, 3, 4] poses, refined by the camera optimiser for training latents."""
+        c2w = camera.camera_to_worlds
+        indices = self.camera_indices(camera)
+        if not self.training or indices is None or self.config.camera_optimizer.mode == "off" or not self.config.optimize_poses:
+            return c2w
+        adj = self.camera_optimizer(indices).to(c2w.device)
+        return torch.cat([torch.bmm(adj[:, :3, :3], c2w[:, :3, :3]), c2w[:, :3, 3:] + adj[:, :3, 3:]], dim=-1)
+
+    def deformed_gaussians(self, time: float, deform: bool) -> Dict[str, Tensor]:
+        """Activated Gaussians at ``time``: means [N,3], quats [N,4], scales [N,3], opacities [N],
+        mask [N]; plus the offsets d_* of the deformed subset and its mask values for the motion loss."""
+        params = self.gauss_params
+        means = params["means"]
+        quats = torch.nn.functional.normalize(params["quats"], dim=-1)
+        scales = torch.exp(params["scales"])
+        mask = torch.sigmoid(params["mask_logit"]).squeeze(-1)
+        if not self.config.use_motion_mask:
+            mask = torch.zeros_like(mask)
+        out = {"means": means, "quats": quats, "scales": scales, "opacities": torch.sigmoid(params["opacities"]).squeeze(-1), "mask": mask}
+        if not deform:
+            return out
+        if self.config.use_motion_mask and self.config.deform_mask_threshold > 0:
+            subset = torch.nonzero(mask.detach() >= self.config.deform_mask_threshold).squeeze(-1)
+        else:
+            subset = torch.arange(self.num_points, device=means.device)
+        d_xyz, d_rot, d_scale = self.deformation(means[subset], time)
+        out["means"] = means.index_add(0, subset, d_xyz)
+        out["quats"] = quats.index_add(0, subset, d_rot)
+        out["scales"] = scales.index_add(0, subset, d_scale).clamp_min(MIN_DEFORMED_SCALE)
+        out.update(d_xyz=d_xyz, d_rot=d_rot, d_scale=d_scale, deformed_mask=mask[subset])
+        return out
+
+    def render_cameras(self, camera: Cameras, deform: Optional[bool] = None) -> Dict[str, Tensor]:
+        """Render C cameras; every output has a leading camera dimension [C, H, W, ·]."""
+        if deform is None:
+            # the deformation heads start at zero, so evaluating it before training is the identity
+            deform = self.config.use_deformation and (self.phase is Phase.DYNAMIC or not self.training)
+        backend = select_backend(self.device, self.config.rasterizer)
+        c2w = self.camera_to_worlds(camera)
+        viewmats = viewmats_from_c2w(c2w)
+        Ks = camera.get_intrinsics_matrices().to(self.device)
+        width, height = int(camera.width[0, 0]), int(camera.height[0, 0])
+        times = camera.times.reshape(-1).tolist() if camera.times is not None else [0.0] * camera.shape[0]
+        sh_degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree) if self.training else self.config.sh_degree
+        coeffs = torch.cat([self.gauss_params["features_dc"][:, None], self.gauss_params["features_rest"]], dim=1)
+        background = torch.tensor(
+            [1.0, 1.0, 1.0, 0.0] if self.config.background_color == "white" else [0.0, 0.0, 0.0, 0.0], device=self.device
+        )
+        results: Dict[str, List[Tensor]] = {k: [] for k in ("rgb", "mask", "depth", "accumulation")}
+        self._deform_terms: List[Dict[str, Tensor]] = []
+        for c in range(camera.shape[0]):
+            g = self.deformed_gaussians(times[c], deform)
+            center = c2w[c, :3, 3]
+            rgb = sh_to_rgb(coeffs, g["means"], center, sh_degree)
+            features = torch.cat([rgb, g["mask"][:, None]], dim=-1)
+            out: RasterOutputs = backend(
+                g["means"], g["quats"], g["scales"], g["opacities"], features,
+                viewmats[c : c + 1], Ks[c : c + 1], width, height, backgrounds=background[None],
+            )
+            if self.training and c == 0 and torch.is_grad_enabled() and self.gauss_params["means"].requires_grad:
+                self._info = strategy_info(out, width, height)
+                self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, self._info)
+            results["rgb"].append(out.render[0, ..., :3].clamp(0.0, 1.0))
+            results["mask"].append(out.render[0, ..., 3:4])
+            results["depth"].append(out.depth[0])
+            results["accumulation"].append(out.alpha[0])
+            if "d_xyz" in g:
+                self._deform_terms.append({k: g[k] for k in ("d_xyz", "d_rot", "d_scale", "deformed_mask")})
+        stacked = {k: torch.stack(v) for k, v in results.items()}
+        stacked["rgb_static"] = stacked["rgb"] * (1.0 - stacked["mask"])
+        return stacked
+
+    def get_outputs(self, camera: Cameras) -> Dict[str, Union[Tensor, List]]:  # type: ignore[override]
+        """rgb, mask (motion mask M), rgb_static = rgb·(1 − M), depth, accumulation; [H, W, ·] for one
+        camera, [C, H, W, ·] for several (training pairs)."""
+        if not isinstance(camera, Cameras):
+            raise ValueError("EdygsModel.get_outputs needs a Cameras object")
+        outputs = self.render_cameras(camera)
+        if camera.shape[0] == 1:
+            outputs = {k: v[0] for k, v in outputs.items()}
+        outputs["background"] = torch.ones(3, device=self.device) if self.config.background_color == "white" else torch.zeros(3, device=self.device)
+        return outputs  # type: ignore[return-value]
+
+    @torch.no_grad()
+    def get_outputs_for_camera(self, camera: Cameras, obb_box=None) -> Dict[str, Tensor]:  # type: ignore[override]
+        return self.get_outputs(camera.to(self.device))  # type: ignore[return-value]
+
+    # ---------------------------------------------------------------- losses
+    @staticmethod
+    def _as_float_image(image: Tensor, device: torch.device) -> Tensor:
+        image = image.to(device)
+        return image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
+
+    def get_metrics_dict(self, outputs, batch) -> Dict[str, Tensor]:
+        gt = self._as_float_image(batch["image"], self.device)[..., :3]
+        pred = outputs["rgb"]
+        mse = (pred - gt.reshape(pred.shape)).square().mean()
+        metrics = {"psnr": -10.0 * torch.log10(mse.clamp_min(1e-10)), "gaussian_count": torch.tensor(float(self.num_points))}
+        metrics["phase"] = torch.tensor(float(list(Phase).index(self.phase)))
+        self.camera_optimizer.get_metrics_dict(metrics)
+        return metrics
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:
+        cfg = self.config
+        phase = self.phase if self.training else Phase.DYNAMIC
+        rgb, mask = outputs["rgb"], outputs["mask"]
+        gt = self._as_float_image(batch["image"], self.device)[..., :3].reshape(rgb.shape)
+        losses: Dict[str, Tensor] = {}
+        if cfg.use_edi_loss and is_active("edi", phase):
+            losses["edi"] = cfg.lambda_edi * l1_dssim(rgb, gt, cfg.ssim_lambda)
+        if cfg.use_edi_loss and cfg.use_motion_mask and is_active("edi_static", phase):
+            losses["edi_static"] = cfg.lambda_edi_static * l1_dssim(rgb, gt, cfg.ssim_lambda, weight=1.0 - mask)
+        if cfg.use_event_loss and is_active("event", phase) and "event_map" in batch and rgb.dim() == 4 and rgb.shape[0] == 2:
+            linear = decode_to_linear(rgb, self.color_space)
+            event_map = batch["event_map"].to(self.device).float()
+            losses["event"] = cfg.lambda_event * event_loss(linear[0], linear[1], event_map, self.theta, cfg.event_log_eps)
+        if cfg.use_motion_mask and is_active("mask_l1", phase):
+            losses["mask_l1"] = cfg.lambda_mask * mask_l1(mask)
+        if cfg.use_motion_mask and is_active("mask_consistency", phase) and self.static_masks.numel() > 0:
+            indices = self._batch_indices(batch, rgb)
+            if indices is not None:
+                reference = self.static_masks[indices.to(self.static_masks.device)].to(self.device).float()[..., None]
+                losses["mask_consistency"] = cfg.lambda_mask_consistency * mask_consistency(mask.reshape(reference.shape), reference)
+        if cfg.use_motion_mask and is_active("motion", phase) and getattr(self, "_deform_terms", None):
+            terms = []
+            for t in self._deform_terms:
+                m = t["deformed_mask"].detach() if cfg.detach_mask_in_motion_loss else t["deformed_mask"]
+                terms.append(motion_loss(t["d_xyz"], t["d_rot"], t["d_scale"], m))
+            losses["motion"] = cfg.lambda_motion * torch.stack(terms).mean()
+        if self.training:
+            self.camera_optimizer.get_loss_dict(losses)
+        if not losses:
+            # a phase with no active term (e.g. an ablation) still needs a differentiable zero
+            losses["none"] = rgb.sum() * 0.0
+        return losses
+
+    def _batch_indices(self, batch, rgb: Tensor) -> Optional[Tensor]:
+        if "image_idx" not in batch:
+            return None
+        idx = torch.as_tensor(batch["image_idx"], dtype=torch.long).reshape(-1)
+        expected = rgb.shape[0] if rgb.dim() == 4 else 1
+        return idx if len(idx) == expected else None
+
+    # ------------------------------------------------------------ evaluation
+    def get_image_metrics_and_images(self, outputs, batch) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
+        from edygs_ns.eval.metrics import mask_iou, psnr, ssim
+
+        gt = self._as_float_image(batch["image"], self.device)[..., :3]
+        pred = outputs["rgb"]
+        metrics = {"psnr": float(psnr(pred, gt)), "ssim": float(ssim(pred, gt))}
+        if "mask" in batch:
+            metrics["mask_iou"] = float(mask_iou(outputs["mask"][..., 0], batch["mask"].to(self.device)[..., 0] > 0.5))
+        images = {"img": torch.cat([gt, pred], dim=1), "mask": outputs["mask"].repeat(1, 1, 3)}
+        return metrics, images
+
+
+def viewmats_from_c2w(c2w: Tensor) -> Tensor:
+    """[C, 3|4, 4] camera-to-world (OpenGL axes) -> [C, 4, 4] world-to-camera (OpenCV axes)."""
+    rot = c2w[:, :3, :3] * c2w.new_tensor(GL_TO_CV)
+    trans = c2w[:, :3, 3:4]
+    rot_inv = rot.transpose(1, 2)
+    top = torch.cat([rot_inv, -rot_inv @ trans], dim=-1)
+    bottom = c2w.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(c2w.shape[0], 1, 4)
+    return torch.cat([top, bottom], dim=1)

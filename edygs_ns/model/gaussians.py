@@ -1,0 +1,90 @@
+"""The per-Gaussian attribute set of EDyGS and its initialisation.
+
+One tuple of names, ``GAUSSIAN_ATTRIBUTES``, drives the parameter groups, the optimizer configs,
+checkpoint resizing and densification (gsplat's ops resize every tensor of the dict together).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Dict, Optional, Tuple
+
+import numpy as np
+import torch
+from jaxtyping import Float
+from torch import Tensor, nn
+
+#: every per-Gaussian tensor; the mask logit is densified with its Gaussian like the others.
+GAUSSIAN_ATTRIBUTES: Tuple[str, ...] = (
+    "means", "scales", "quats", "features_dc", "features_rest", "opacities", "mask_logit",
+)
+#: SH degree-0 constant: colour = SH_C0 · f_dc + 0.5.
+SH_C0 = 0.28209479177387814
+#: neighbours used for the initial scale (mean distance), as in 3DGS.
+INIT_NEIGHBOURS = 3
+#: smallest initial scale, guards duplicated points.
+MIN_INIT_SCALE = 1e-4
+
+
+def num_sh_bases(degree: int) -> int:
+    return (degree + 1) ** 2
+
+
+def rgb_to_sh(rgb: Tensor) -> Tensor:
+    return (rgb - 0.5) / SH_C0
+
+
+def logit(p: float) -> float:
+    return math.log(p / (1.0 - p))
+
+
+def knn_mean_distance(points: Float[Tensor, "N 3"], k: int = INIT_NEIGHBOURS) -> Float[Tensor, "N"]:
+    """Mean distance of every point to its k nearest neighbours (sklearn KD-tree on CPU)."""
+    from sklearn.neighbors import NearestNeighbors
+
+    x = points.detach().cpu().numpy()
+    n_neighbors = min(k + 1, len(x))
+    if n_neighbors < 2:
+        return torch.full((len(x),), 0.01)
+    dist, _ = NearestNeighbors(n_neighbors=n_neighbors).fit(x).kneighbors(x)
+    return torch.from_numpy(dist[:, 1:].mean(axis=1).astype(np.float32))
+
+
+def random_unit_quats(n: int, generator: Optional[torch.Generator] = None) -> Float[Tensor, "N 4"]:
+    """Uniformly random rotations as unit quaternions (wxyz)."""
+    u = torch.rand(n, 3, generator=generator)
+    a, b, c = u[:, 0], 2 * math.pi * u[:, 1], 2 * math.pi * u[:, 2]
+    return torch.stack(
+        [torch.sqrt(1 - a) * torch.sin(b), torch.sqrt(1 - a) * torch.cos(b), torch.sqrt(a) * torch.sin(c), torch.sqrt(a) * torch.cos(c)],
+        dim=-1,
+    )
+
+
+def init_gaussians(
+    points: Float[Tensor, "N 3"],
+    colors: Optional[Tensor],
+    sh_degree: int,
+    init_opacity: float,
+    init_mask: float,
+    seed: int = 0,
+) -> nn.ParameterDict:
+    """Gaussians at ``points`` with colours (uint8 [N,3] or float in [0,1]) and mask m = init_mask."""
+    n = points.shape[0]
+    generator = torch.Generator().manual_seed(seed)
+    scales = torch.log(knn_mean_distance(points).clamp_min(MIN_INIT_SCALE))[:, None].repeat(1, 3)
+    features = torch.zeros(n, num_sh_bases(sh_degree), 3)
+    if colors is not None and len(colors) == n:
+        rgb = colors.float() / 255.0 if colors.dtype == torch.uint8 else colors.float()
+        features[:, 0] = rgb_to_sh(rgb)
+    else:
+        features[:, 0] = rgb_to_sh(torch.rand(n, 3, generator=generator))
+    params: Dict[str, Tensor] = {
+        "means": points.float().clone(),
+        "scales": scales,
+        "quats": random_unit_quats(n, generator),
+        "features_dc": features[:, 0].contiguous(),
+        "features_rest": features[:, 1:].contiguous(),
+        "opacities": torch.full((n, 1), logit(init_opacity)),
+        "mask_logit": torch.full((n, 1), logit(init_mask)),
+    }
+    return nn.ParameterDict({name: nn.Parameter(params[name]) for name in GAUSSIAN_ATTRIBUTES})

@@ -1,0 +1,721 @@
+"""Every input form of ``edygs-process``, turned into one neutral :class:`Capture`.
+
+Input forms:
+
+- (a) ``--aedat4 FILE``: a DAVIS recording; APS frames with their exposure begin/end and the
+  event stream, in one file. It carries no poses.
+- (b) ``--exposures CSV --events FILE``: an exposure table (docs/layouts.md) naming the blurry
+  frames, and events in any format :mod:`edygs_ns.events.readers` reads. When the CSV sits in a
+  raw capture written by ``edygs-synth``, its ``gt/transforms.json`` gives the poses for
+  ``--poses given`` and ``gt/`` is copied into the processed scene.
+- (c) ``--e2nerf DIR``: an E2NeRF scene, synthetic (Blender style: ``transform_train.json``,
+  ``train/r_*.png``, ``events.pt``) or real (LLFF style: ``poses_bounds.npy``, ``images/``,
+  ``events.pt``). Its events are already binned (4 bins per frame), so k - 1 must divide 4, and
+  the format stores no timestamps: exposures are placed on a nominal clock
+  (:data:`E2NERF_FRAME_PERIOD_US`, :data:`E2NERF_EXPOSURE_US`), which only sets the
+  normalised latent times.
+
+EvDeblurNeRF folders are not read yet (left for later): convert them to form (b).
+
+A capture holds the selected frames (frame range/stride applied), downscaled by an integer
+factor together with the event coordinates. Pixel values are stored 8-bit RGB as read: grey
+frames are repeated over three channels, alpha is composited over a white or black background,
+16-bit images are scaled to 8 bits.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import List, Literal, Optional, Sequence, Tuple
+
+import cv2
+import numpy as np
+
+from edygs_ns.events.accumulate import latent_times_us
+from edygs_ns.events.exposures import Exposure, check_frames_match, read_exposures
+from edygs_ns.events.readers import ArrayEventSource, EventSource, open_event_source, read_aedat4
+from edygs_ns.events.types import EventArray
+
+#: Largest value of an 8-bit pixel.
+UINT8_MAX = 255
+#: 16-bit pixels are divided by this to become 8-bit (65535 / 257 = 255).
+UINT16_TO_UINT8 = 257
+#: Colour channels of every frame in a capture (RGB).
+RGB_CHANNELS = 3
+#: Name of the ground-truth folder of a raw capture, and its pose file.
+GT_DIR_NAME = "gt"
+GT_TRANSFORMS_NAME = "transforms.json"
+#: Scene description written by edygs-synth next to exposures.csv (carries the scene extent).
+SCENE_JSON_NAME = "scene.json"
+#: E2NeRF synthetic scene files.
+E2NERF_TRAIN_JSON = "transform_train.json"
+E2NERF_TRAIN_DIR = "train"
+E2NERF_EVENTS = "events.pt"
+E2NERF_IMAGE_PATTERN = "r_{index}.png"
+#: E2NeRF real (LLFF style) scene files.
+E2NERF_LLFF_POSES = "poses_bounds.npy"
+E2NERF_LLFF_IMAGES = "images"
+E2NERF_LLFF_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".PNG")
+#: E2NeRF stores this many event bins per blurry frame (5 latents).
+E2NERF_BINS = 4
+#: E2NeRF synthetic frames list their sub-frame poses; the latent j of 5 sits at index
+#: E2NERF_FIRST_LATENT_POSE + j * E2NERF_LATENT_POSE_STEP (indices 1, 5, 9, 13, 17).
+E2NERF_FIRST_LATENT_POSE = 1
+E2NERF_LATENT_POSE_STEP = 4
+#: LLFF rows: 3x5 pose-and-hwf matrix, then near and far.
+LLFF_POSE_SHAPE = (3, 5)
+LLFF_ROW_LENGTH = 17
+#: E2NeRF's Blender scenes are rendered between these depths (its loader's near and far).
+E2NERF_BLENDER_DEPTH_RANGE = (2.0, 6.0)
+#: Nominal clock of E2NeRF frames, which store no timestamps: frame i is exposed over
+#: [i * period, i * period + exposure) µs. Only normalised latent times depend on it.
+E2NERF_FRAME_PERIOD_US = 200_000
+E2NERF_EXPOSURE_US = 100_000
+#: Exposures may start before the first event or end after the last one by this fraction of
+#: one event bin (events are discrete; a quiet instant at the edge is not a gap).
+COVERAGE_TOLERANCE_BINS = 1.0
+#: Fragment of the readers' error when a file stores no sensor size (then the frame size is used).
+NO_SENSOR_SIZE_MESSAGE = "does not store the sensor size"
+
+
+@dataclass
+class InputConfig:
+    """Where the capture comes from, which frames to take, and at which resolution."""
+
+    aedat4: Optional[Path] = None
+    """Input form (a): a DAVIS AEDAT4 recording (APS frames with exposures + events)."""
+    exposures: Optional[Path] = None
+    """Input form (b): the exposure table (frame,exposure_start_us,exposure_end_us,file); needs --events."""
+    events: Optional[Path] = None
+    """Input form (b): the event file (.h5, .npz, .npy, .txt, .aedat4)."""
+    e2nerf: Optional[Path] = None
+    """Input form (c): an E2NeRF synthetic (transform_train.json) or real (poses_bounds.npy) scene folder."""
+    given_poses: Optional[Path] = None
+    """With --poses given: a transforms.json with one frame per latent (blurry_index, latent_index or
+    time_us, transform_matrix). Default: gt/transforms.json next to the exposure table, or the E2NeRF poses."""
+    events_t_offset_us: Optional[int] = None
+    """Microseconds added to every event timestamp (replaces the file's own t_offset)."""
+    frame_start: int = 0
+    """First blurry frame to use (index into the input's frame list)."""
+    frame_end: Optional[int] = None
+    """One past the last blurry frame to use (None: up to the last frame)."""
+    frame_stride: int = 1
+    """Use every frame_stride-th frame from frame_start."""
+    downscale: int = 1
+    """Integer factor dividing the frame size and the event coordinates (counts are area-averaged)."""
+    alpha_background: Literal["white", "black"] = "white"
+    """Background that RGBA frames are composited over (E2NeRF's Blender frames use white)."""
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in pixels (pixel centres at integer + 0.5, as COLMAP and nerfstudio use)."""
+
+    width: int
+    height: int
+    fl_x: float
+    fl_y: float
+    cx: float
+    cy: float
+
+    def resized(self, width: int, height: int) -> "Intrinsics":
+        """The same camera for images resized to width x height pixels."""
+        sx, sy = width / self.width, height / self.height
+        return Intrinsics(width, height, self.fl_x * sx, self.fl_y * sy, self.cx * sx, self.cy * sy)
+
+    def matrix(self) -> np.ndarray:
+        """[3, 3] float64 calibration matrix K."""
+        return np.array([[self.fl_x, 0.0, self.cx], [0.0, self.fl_y, self.cy], [0.0, 0.0, 1.0]])
+
+
+@dataclass
+class GivenPoses:
+    """Poses taken from the input instead of COLMAP.
+
+    Attributes:
+        c2w: [n, k, 4, 4] float64 camera-to-world (OpenGL axes), latent j of selected frame i.
+        intrinsics: the camera at the capture's (downscaled) resolution.
+        source: the file the poses came from.
+        depth_range: (near, far) world-unit depths where the scene lies, when the input says.
+    """
+
+    c2w: np.ndarray
+    intrinsics: Intrinsics
+    source: str
+    depth_range: Optional[Tuple[float, float]] = None
+
+
+@dataclass
+class Capture:
+    """The neutral form of every input: blurry frames, exposures, events, optional poses.
+
+    Attributes:
+        form: which input form it came from ("aedat4", "exposures" or "e2nerf").
+        source: the input file or folder, for messages and the report.
+        frames: n uint8 [H, W, 3] blurry frames (selected and downscaled).
+        frame_names: n names of the frames' origin, for messages.
+        exposures: n exposures (µs on the event clock); ``file`` is the frame's origin.
+        events: windowed event source at the capture's resolution, or None when binned.
+        binned_events: [n, k-1, H, W] float32 signed counts when the input stores bins, else None.
+        event_count_scale: factor applied to accumulated counts (1 / downscale², the area
+            average that keeps count * theta a log-intensity change).
+        given_poses: poses from the input, when asked for and available.
+        gt_dir: ground-truth folder to copy into the processed scene, if any.
+        scene_json: the raw capture's scene.json, if any.
+        input_paths: files whose content the processing depends on (fingerprints).
+        selected: n indices of the selected frames in the input's frame list.
+    """
+
+    form: str
+    source: str
+    frames: List[np.ndarray]
+    frame_names: List[str]
+    exposures: List[Exposure]
+    events: Optional[EventSource]
+    binned_events: Optional[np.ndarray]
+    event_count_scale: float
+    given_poses: Optional[GivenPoses] = None
+    gt_dir: Optional[Path] = None
+    scene_json: Optional[Path] = None
+    input_paths: List[Path] = field(default_factory=list)
+    selected: List[int] = field(default_factory=list)
+
+    @property
+    def height(self) -> int:
+        return int(self.frames[0].shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.frames[0].shape[1])
+
+    def close(self) -> None:
+        """Release the event file."""
+        if self.events is not None:
+            self.events.close()
+
+
+class DownscaledEventSource(EventSource):
+    """Events of another source with coordinates divided by an integer factor.
+
+    Events falling outside the downscaled sensor (the cropped remainder when the size is not a
+    multiple of the factor) are dropped.
+    """
+
+    def __init__(self, base: EventSource, factor: int) -> None:
+        h, w = base.sensor_size
+        super().__init__(f"{base.name} (downscaled x{factor})", (h // factor, w // factor))
+        self.base = base
+        self.factor = int(factor)
+
+    def _scale(self, events: EventArray) -> EventArray:
+        x = events.x // self.factor
+        y = events.y // self.factor
+        keep = (x < self.sensor_size[1]) & (y < self.sensor_size[0])
+        return EventArray(x[keep], y[keep], events.t[keep], events.p[keep], self.sensor_size)
+
+    def __len__(self) -> int:
+        return len(self.base)
+
+    def t_range(self) -> Tuple[int, int]:
+        return self.base.t_range()
+
+    def window(self, t_start_us: int, t_end_us: int) -> EventArray:
+        return self._scale(self.base.window(t_start_us, t_end_us))
+
+    def read_all(self) -> EventArray:
+        return self._scale(self.base.read_all())
+
+    def close(self) -> None:
+        self.base.close()
+
+
+# ----------------------------------------------------------------------------------------------
+# Frames
+
+
+def to_rgb8(image: np.ndarray, name: str, alpha_background: str = "white") -> np.ndarray:
+    """An image as read from disk (grey, RGB or RGBA; 8 or 16 bit) as uint8 [H, W, 3] RGB.
+
+    Args:
+        image: [H, W], [H, W, 1], [H, W, 3] or [H, W, 4] uint8/uint16, channels in RGB(A) order.
+        name: the image's origin, for the error message.
+        alpha_background: "white" or "black", what transparent pixels show.
+
+    Raises:
+        ValueError: unsupported dtype or channel count.
+    """
+    if image.dtype == np.uint16:
+        image = (image // UINT16_TO_UINT8).astype(np.uint8)
+    if image.dtype != np.uint8:
+        raise ValueError(f"{name}: unsupported pixel type {image.dtype} (expected 8- or 16-bit)")
+    if image.ndim == 2:
+        image = image[..., None]
+    channels = image.shape[2]
+    if channels == 1:
+        return np.repeat(image, RGB_CHANNELS, axis=2)
+    if channels == RGB_CHANNELS:
+        return np.ascontiguousarray(image)
+    if channels == RGB_CHANNELS + 1:
+        alpha = image[..., 3:].astype(np.float32) / UINT8_MAX
+        background = float(UINT8_MAX) if alpha_background == "white" else 0.0
+        rgb = image[..., :3].astype(np.float32) * alpha + background * (1.0 - alpha)
+        return np.clip(np.round(rgb), 0, UINT8_MAX).astype(np.uint8)
+    raise ValueError(f"{name}: unsupported channel count {channels} (expected 1, 3 or 4)")
+
+
+def read_image(path: Path, alpha_background: str = "white") -> np.ndarray:
+    """Read an image file as uint8 [H, W, 3] RGB (see :func:`to_rgb8`).
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: the file cannot be decoded.
+    """
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: image file not found")
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise ValueError(f"{path}: cannot decode the image")
+    if raw.ndim == 3 and raw.shape[2] == RGB_CHANNELS:
+        raw = cv2.cvtColor(raw, cv2.COLOR_BGR2RGB)
+    elif raw.ndim == 3 and raw.shape[2] == RGB_CHANNELS + 1:
+        raw = cv2.cvtColor(raw, cv2.COLOR_BGRA2RGBA)
+    return to_rgb8(raw, str(path), alpha_background)
+
+
+def downscale_image(image: np.ndarray, factor: int) -> np.ndarray:
+    """Area-average an image by an integer factor ([H, W, C] -> [H // f, W // f, C])."""
+    if factor == 1:
+        return image
+    h, w = image.shape[:2]
+    return cv2.resize(image, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+
+
+def downscale_counts(maps: np.ndarray, factor: int) -> np.ndarray:
+    """Area-average event-count maps [..., H, W] by an integer factor (remainder cropped)."""
+    if factor == 1:
+        return maps
+    h, w = maps.shape[-2] // factor, maps.shape[-1] // factor
+    cropped = maps[..., : h * factor, : w * factor]
+    blocks = cropped.reshape(maps.shape[:-2] + (h, factor, w, factor))
+    return blocks.mean(axis=(-3, -1)).astype(np.float32)
+
+
+def select_indices(n: int, config: InputConfig, source: str) -> List[int]:
+    """Indices of the frames kept by frame_start / frame_end / frame_stride.
+
+    Raises:
+        ValueError: a bad range or stride, or nothing selected (names the source).
+    """
+    if config.frame_stride < 1:
+        raise ValueError(f"frame_stride must be at least 1, got {config.frame_stride}")
+    if config.downscale < 1:
+        raise ValueError(f"downscale must be at least 1, got {config.downscale}")
+    end = n if config.frame_end is None else min(config.frame_end, n)
+    indices = list(range(max(config.frame_start, 0), end, config.frame_stride))
+    if not indices:
+        raise ValueError(
+            f"{source}: no frame selected by frame_start={config.frame_start}, frame_end={config.frame_end}, "
+            f"frame_stride={config.frame_stride} (the input has {n} frames)"
+        )
+    return indices
+
+
+# ----------------------------------------------------------------------------------------------
+# Events
+
+
+def _open_events(path: Path, frame_size: Tuple[int, int], t_offset_us: Optional[int]) -> EventSource:
+    """Open an event file; when it stores no sensor size the frames' size is used."""
+    try:
+        return open_event_source(path, None, t_offset_us)
+    except ValueError as err:
+        if NO_SENSOR_SIZE_MESSAGE not in str(err):
+            raise
+        return open_event_source(path, frame_size, t_offset_us)
+
+
+def check_sensor_matches(events_name: str, sensor_size: Tuple[int, int], frame_name: str, frame_shape: Sequence[int]) -> None:
+    """Raise ValueError naming both files when the event sensor and the frames differ in size."""
+    if tuple(sensor_size) != tuple(frame_shape[:2]):
+        raise ValueError(
+            f"sensor size mismatch: {events_name} has a {sensor_size[1]}x{sensor_size[0]} (width x height) sensor "
+            f"but the frame {frame_name} is {frame_shape[1]}x{frame_shape[0]}"
+        )
+
+
+def check_event_coverage(source: EventSource, exposures: Sequence[Exposure], names: Sequence[str], k: int) -> None:
+    """Raise ValueError naming the first frame whose exposure the events do not cover.
+
+    An exposure may overhang the first/last event by COVERAGE_TOLERANCE_BINS event bins.
+    """
+    try:
+        t_first, t_last = source.t_range()
+    except ValueError as err:
+        raise ValueError(f"{source.name}: holds no events, so no exposure is covered") from err
+    for exposure, name in zip(exposures, names):
+        tolerance = COVERAGE_TOLERANCE_BINS * (exposure.end_us - exposure.start_us) / (k - 1)
+        if exposure.start_us < t_first - tolerance or exposure.end_us > t_last + tolerance:
+            raise ValueError(
+                f"{source.name}: events cover [{t_first}, {t_last}] µs but frame {exposure.frame} ({name}) is exposed "
+                f"over [{exposure.start_us}, {exposure.end_us}] µs; check the event file, the exposure times and "
+                "--events-t-offset-us"
+            )
+
+
+# ----------------------------------------------------------------------------------------------
+# Given poses
+
+
+def _slerp_poses(times: np.ndarray, c2w: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """Poses at query times: rotations slerped, centres linear; clamped outside the known times.
+
+    Args:
+        times: [M] strictly increasing µs.
+        c2w: [M, 4, 4] poses at those times.
+        query: [Q] µs.
+
+    Returns:
+        [Q, 4, 4] float64.
+    """
+    from scipy.spatial.transform import Rotation, Slerp
+
+    q = np.clip(query.astype(np.float64), times[0], times[-1])
+    out = np.tile(np.eye(4), (len(q), 1, 1))
+    if len(times) == 1:
+        out[:] = c2w[0]
+        return out
+    out[:, :3, :3] = Slerp(times.astype(np.float64), Rotation.from_matrix(c2w[:, :3, :3]))(q).as_matrix()
+    for axis in range(3):
+        out[:, axis, 3] = np.interp(q, times, c2w[:, axis, 3])
+    return out
+
+
+def _intrinsics_from_json(meta: dict, path: Path) -> Intrinsics:
+    """Intrinsics from a nerfstudio/Blender-style transforms.json (fl_x.. or camera_angle_x)."""
+    try:
+        w, h = int(meta["w"]), int(meta["h"])
+    except KeyError as err:
+        raise ValueError(f"{path}: missing image size field {err.args[0]!r}") from None
+    if "fl_x" in meta:
+        fl_x = float(meta["fl_x"])
+        fl_y = float(meta.get("fl_y", fl_x))
+    elif "camera_angle_x" in meta:
+        fl_x = fl_y = 0.5 * w / float(np.tan(0.5 * float(meta["camera_angle_x"])))
+    else:
+        raise ValueError(f"{path}: no focal length (fl_x or camera_angle_x)")
+    return Intrinsics(w, h, fl_x, fl_y, float(meta.get("cx", w / 2.0)), float(meta.get("cy", h / 2.0)))
+
+
+def poses_from_transforms(path: Path, exposures: Sequence[Exposure], k: int, frame_size: Tuple[int, int]) -> GivenPoses:
+    """Per-latent poses from a transforms.json for the given exposures.
+
+    Frames carrying ``time_us`` are interpolated at every latent time (exact where the times
+    coincide); otherwise the frames must carry ``blurry_index`` (the exposure's ``frame``) and
+    ``latent_index`` < k for every latent.
+
+    Args:
+        path: transforms.json with "frames" of c2w ``transform_matrix`` (OpenGL axes).
+        exposures: the n selected exposures.
+        k: latents per exposure.
+        frame_size: (height, width) of the capture's frames, to rescale the intrinsics.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: malformed file, or a latent without a pose (names it).
+    """
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: given-poses file not found")
+    meta = json.loads(path.read_text())
+    frames = meta.get("frames")
+    if not frames:
+        raise ValueError(f"{path}: no 'frames' list")
+    intrinsics = _intrinsics_from_json(meta, path).resized(frame_size[1], frame_size[0])
+    c2w = np.zeros((len(exposures), k, 4, 4))
+    if all("time_us" in f for f in frames):
+        times = np.array([int(f["time_us"]) for f in frames], dtype=np.int64)
+        order = np.argsort(times, kind="stable")
+        times, index = np.unique(times[order], return_index=True)
+        known = np.array([frames[order[i]]["transform_matrix"] for i in index], dtype=np.float64)
+        for i, e in enumerate(exposures):
+            c2w[i] = _slerp_poses(times, known, latent_times_us(e.start_us, e.end_us, k))
+    else:
+        table = {(int(f["blurry_index"]), int(f["latent_index"])): f["transform_matrix"] for f in frames}
+        for i, e in enumerate(exposures):
+            for j in range(k):
+                if (e.frame, j) not in table:
+                    raise ValueError(f"{path}: no pose for frame {e.frame} latent {j} (and no time_us to interpolate)")
+                c2w[i, j] = np.asarray(table[(e.frame, j)], dtype=np.float64)
+    return GivenPoses(c2w=c2w, intrinsics=intrinsics, source=str(path))
+
+
+# ----------------------------------------------------------------------------------------------
+# Input forms
+
+
+def _finish_capture(
+    form: str,
+    source: str,
+    frames: List[np.ndarray],
+    names: List[str],
+    exposures: List[Exposure],
+    events: Optional[EventSource],
+    events_name: str,
+    config: InputConfig,
+    k: int,
+    selected: List[int],
+) -> Capture:
+    """Check the frames against the events, downscale both, build the Capture."""
+    shape = frames[0].shape
+    for frame, name in zip(frames, names):
+        if frame.shape != shape:
+            raise ValueError(f"{name}: frame is {frame.shape[1]}x{frame.shape[0]} but {names[0]} is {shape[1]}x{shape[0]}")
+    if events is not None:
+        check_sensor_matches(events_name, events.sensor_size, names[0], shape)
+        check_event_coverage(events, exposures, names, k)
+        if config.downscale > 1:
+            events = DownscaledEventSource(events, config.downscale)
+    frames = [downscale_image(f, config.downscale) for f in frames]
+    return Capture(
+        form=form,
+        source=source,
+        frames=frames,
+        frame_names=names,
+        exposures=exposures,
+        events=events,
+        binned_events=None,
+        event_count_scale=1.0 / config.downscale**2,
+        selected=selected,
+    )
+
+
+def load_aedat4(config: InputConfig, k: int) -> Capture:
+    """Input form (a): frames, exposures and events of one AEDAT4 recording."""
+    path = Path(config.aedat4)
+    events, aps = read_aedat4(path)
+    if not aps:
+        raise ValueError(f"{path}: no APS frames in the recording; edygs-process needs the blurry frames")
+    indices = select_indices(len(aps), config, str(path))
+    names = [f"{path.name} frame {i}" for i in indices]
+    frames = [to_rgb8(aps[i].image, name) for i, name in zip(indices, names)]
+    exposures = []
+    for i in indices:
+        start, end = aps[i].exposure_start_us, aps[i].exposure_end_us
+        if end <= start:
+            raise ValueError(f"{path}: frame {i} has exposure end {end} µs not after its start {start} µs")
+        exposures.append(Exposure(frame=i, start_us=int(start), end_us=int(end), file=path))
+    source = ArrayEventSource(events, name=str(path))
+    capture = _finish_capture("aedat4", str(path), frames, names, exposures, source, str(path), config, k, indices)
+    capture.input_paths = [path]
+    return capture
+
+
+def load_exposure_table(config: InputConfig, k: int) -> Capture:
+    """Input form (b): an exposure table naming the frames, and an event file."""
+    csv_path = Path(config.exposures)
+    if config.events is None:
+        raise ValueError(f"{csv_path}: --exposures needs --events (the event file of the same capture)")
+    all_exposures = read_exposures(csv_path)
+    if not all_exposures:
+        raise ValueError(f"{csv_path}: the exposure table lists no frame")
+    check_frames_match(all_exposures, [e.file for e in all_exposures], str(csv_path))
+    indices = select_indices(len(all_exposures), config, str(csv_path))
+    exposures = [all_exposures[i] for i in indices]
+    names = [str(e.file) for e in exposures]
+    frames = [read_image(e.file, config.alpha_background) for e in exposures]
+    events = _open_events(Path(config.events), frames[0].shape[:2], config.events_t_offset_us)
+    try:
+        capture = _finish_capture(
+            "exposures", str(csv_path), frames, names, exposures, events, str(config.events), config, k, indices
+        )
+    except Exception:
+        events.close()
+        raise
+    raw_dir = csv_path.resolve().parent
+    gt_dir = raw_dir / GT_DIR_NAME
+    capture.gt_dir = gt_dir if gt_dir.is_dir() else None
+    scene_json = raw_dir / SCENE_JSON_NAME
+    capture.scene_json = scene_json if scene_json.is_file() else None
+    capture.input_paths = [csv_path, Path(config.events)] + [e.file for e in exposures]
+    return capture
+
+
+def _e2nerf_exposures(n: int, files: Sequence[Path]) -> List[Exposure]:
+    """Exposures on the nominal E2NeRF clock (the format stores no timestamps)."""
+    return [
+        Exposure(frame=i, start_us=i * E2NERF_FRAME_PERIOD_US, end_us=i * E2NERF_FRAME_PERIOD_US + E2NERF_EXPOSURE_US, file=f)
+        for i, f in zip(range(n), files)
+    ]
+
+
+def _e2nerf_bins(path: Path, n_views: int, height: int, width: int, k: int) -> np.ndarray:
+    """events.pt [views, 4, H*W] as [views, k-1, H, W] float32 (bins merged when k - 1 < 4)."""
+    import torch
+
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: E2NeRF event bins not found")
+    tensor = torch.load(path, map_location="cpu", weights_only=True)
+    bins = np.asarray(tensor.float().numpy() if hasattr(tensor, "numpy") else tensor, dtype=np.float32)
+    if bins.ndim != 3 or bins.shape[0] != n_views or bins.shape[1] != E2NERF_BINS or bins.shape[2] != height * width:
+        raise ValueError(
+            f"{path}: expected event bins of shape ({n_views}, {E2NERF_BINS}, {height * width}) for {n_views} "
+            f"{width}x{height} frames, got {tuple(bins.shape)}"
+        )
+    if E2NERF_BINS % (k - 1) != 0:
+        raise ValueError(f"{path}: E2NeRF stores {E2NERF_BINS} event bins per frame; k - 1 must divide it, got k={k}")
+    merged = bins.reshape(n_views, k - 1, E2NERF_BINS // (k - 1), height, width).sum(axis=2)
+    return np.ascontiguousarray(merged, dtype=np.float32)
+
+
+def _e2nerf_latent_pose_indices(k: int) -> List[int]:
+    """Indices in an E2NeRF sub-pose list of the k latents (1, 5, 9, 13, 17 for k = 5)."""
+    step = E2NERF_LATENT_POSE_STEP * E2NERF_BINS // (k - 1)
+    return [E2NERF_FIRST_LATENT_POSE + j * step for j in range(k)]
+
+
+def _load_e2nerf_blender(folder: Path, config: InputConfig, k: int) -> Tuple[List[np.ndarray], List[Path], np.ndarray, Intrinsics, Tuple[float, float]]:
+    """Frames, files, per-latent c2w [n_all, k, 4, 4], intrinsics and depth range of a Blender-style scene."""
+    meta_path = folder / E2NERF_TRAIN_JSON
+    meta = json.loads(meta_path.read_text())
+    entries = meta.get("frames", [])
+    files, poses = [], []
+    for index, entry in enumerate(entries):
+        image = folder / E2NERF_TRAIN_DIR / E2NERF_IMAGE_PATTERN.format(index=index)
+        if not image.is_file():
+            continue  # E2NeRF keeps every other frame's image for training
+        matrices = np.asarray(entry["transform_matrix"], dtype=np.float64)
+        wanted = _e2nerf_latent_pose_indices(k)
+        if matrices.ndim == 2:  # one pose for the whole exposure: every latent shares it
+            matrices = np.repeat(matrices[None], wanted[-1] + 1, axis=0)
+        if matrices.ndim != 3 or matrices.shape[0] <= wanted[-1]:
+            raise ValueError(f"{meta_path}: frame {index} has {matrices.shape[0]} sub-poses; latents need index {wanted[-1]}")
+        files.append(image)
+        poses.append(matrices[wanted])
+    if not files:
+        raise FileNotFoundError(f"{folder / E2NERF_TRAIN_DIR}: no training image r_<i>.png for the frames of {meta_path}")
+    frames = [read_image(f, config.alpha_background) for f in files]
+    h, w = frames[0].shape[:2]
+    focal = 0.5 * w / float(np.tan(0.5 * float(meta["camera_angle_x"])))
+    return frames, files, np.stack(poses), Intrinsics(w, h, focal, focal, w / 2.0, h / 2.0), E2NERF_BLENDER_DEPTH_RANGE
+
+
+def _load_e2nerf_llff(folder: Path, config: InputConfig, k: int) -> Tuple[List[np.ndarray], List[Path], np.ndarray, Intrinsics, Tuple[float, float]]:
+    """Frames, files, per-latent c2w, intrinsics and depth range of an LLFF-style (real) scene."""
+    rows = np.load(folder / E2NERF_LLFF_POSES)
+    if rows.ndim != 2 or rows.shape[1] != LLFF_ROW_LENGTH:
+        raise ValueError(f"{folder / E2NERF_LLFF_POSES}: expected rows of {LLFF_ROW_LENGTH} numbers, got shape {rows.shape}")
+    image_dir = folder / E2NERF_LLFF_IMAGES
+    files = sorted(p for p in image_dir.iterdir() if p.suffix in E2NERF_LLFF_SUFFIXES) if image_dir.is_dir() else []
+    if not files:
+        raise FileNotFoundError(f"{image_dir}: no blurry frames (.png/.jpg)")
+    latents_per_frame = E2NERF_BINS + 1
+    if rows.shape[0] != len(files) * latents_per_frame:
+        raise ValueError(
+            f"{folder / E2NERF_LLFF_POSES}: {rows.shape[0]} pose rows for {len(files)} frames; "
+            f"expected {latents_per_frame} per frame"
+        )
+    frames = [read_image(f, config.alpha_background) for f in files]
+    mats = rows[:, : LLFF_POSE_SHAPE[0] * LLFF_POSE_SHAPE[1]].reshape(-1, *LLFF_POSE_SHAPE)
+    # LLFF rotation columns are (down, right, back); OpenGL wants (right, up, back).
+    c2w = np.tile(np.eye(4), (len(mats), 1, 1))
+    c2w[:, :3, 0] = mats[:, :, 1]
+    c2w[:, :3, 1] = -mats[:, :, 0]
+    c2w[:, :3, 2] = mats[:, :, 2]
+    c2w[:, :3, 3] = mats[:, :, 3]
+    per_frame = c2w.reshape(len(files), latents_per_frame, 4, 4)
+    step = E2NERF_BINS // (k - 1) if E2NERF_BINS % (k - 1) == 0 else 1
+    per_frame = per_frame[:, :: step][:, :k]
+    height, width, focal = (float(v) for v in mats[0, :, 4])
+    h, w = frames[0].shape[:2]
+    intrinsics = Intrinsics(int(round(width)), int(round(height)), focal, focal, width / 2.0, height / 2.0).resized(w, h)
+    bounds = rows[:, -2:]
+    return frames, files, per_frame, intrinsics, (float(bounds[:, 0].min()), float(bounds[:, 1].max()))
+
+
+def load_e2nerf(config: InputConfig, k: int) -> Capture:
+    """Input form (c): an E2NeRF synthetic (Blender) or real (LLFF) scene with binned events."""
+    folder = Path(config.e2nerf)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder}: E2NeRF scene folder not found")
+    if (folder / E2NERF_TRAIN_JSON).is_file():
+        loaded = _load_e2nerf_blender(folder, config, k)
+        pose_file = folder / E2NERF_TRAIN_JSON
+    elif (folder / E2NERF_LLFF_POSES).is_file():
+        loaded = _load_e2nerf_llff(folder, config, k)
+        pose_file = folder / E2NERF_LLFF_POSES
+    else:
+        raise FileNotFoundError(f"{folder}: neither {E2NERF_TRAIN_JSON} (synthetic) nor {E2NERF_LLFF_POSES} (real) found")
+    frames, files, c2w, intrinsics, depth_range = loaded
+    if E2NERF_BINS % (k - 1) != 0:
+        raise ValueError(f"{folder}: E2NeRF stores {E2NERF_BINS} event bins per frame; k - 1 must divide it, got k={k}")
+    h, w = frames[0].shape[:2]
+    bins = _e2nerf_bins(folder / E2NERF_EVENTS, len(frames), h, w, k)
+    indices = select_indices(len(frames), config, str(folder))
+    all_exposures = _e2nerf_exposures(len(frames), files)
+    exposures = [all_exposures[i] for i in indices]
+    names = [str(files[i]) for i in indices]
+    capture = _finish_capture(
+        "e2nerf", str(folder), [frames[i] for i in indices], names, exposures, None, "", config, k, indices
+    )
+    capture.binned_events = downscale_counts(bins[indices], config.downscale)
+    capture.event_count_scale = 1.0  # area averaging is already applied to the stored bins
+    capture.given_poses = GivenPoses(
+        c2w=c2w[indices],
+        intrinsics=intrinsics.resized(capture.width, capture.height),
+        source=str(pose_file),
+        depth_range=depth_range,
+    )
+    capture.input_paths = [pose_file, folder / E2NERF_EVENTS] + [files[i] for i in indices]
+    return capture
+
+
+def load_capture(config: InputConfig, k: int, want_given_poses: bool) -> Capture:
+    """Read one input form into a Capture and check it.
+
+    Args:
+        config: which input and which frames.
+        k: latents per blurry frame (the E2NeRF bins are merged to k - 1; given poses are
+            looked up per latent).
+        want_given_poses: load the poses of the input (``--poses given``).
+
+    Returns:
+        The capture; close it when done (it may hold an open event file).
+
+    Raises:
+        FileNotFoundError / ValueError: missing or inconsistent inputs, named in the message.
+    """
+    forms = [name for name in ("aedat4", "exposures", "e2nerf") if getattr(config, name) is not None]
+    if len(forms) != 1:
+        raise ValueError(
+            "give exactly one input: --aedat4 FILE, or --exposures CSV --events FILE, or --e2nerf DIR "
+            f"(got {', '.join('--' + f for f in forms) or 'none'})"
+        )
+    if k < 2:
+        raise ValueError(f"k must be at least 2 (one event bin), got {k}")
+    loader = {"aedat4": load_aedat4, "exposures": load_exposure_table, "e2nerf": load_e2nerf}[forms[0]]
+    capture = loader(config, k)
+    if want_given_poses:
+        try:
+            _attach_given_poses(capture, config, k)
+        except Exception:
+            capture.close()
+            raise
+    return capture
+
+
+def _attach_given_poses(capture: Capture, config: InputConfig, k: int) -> None:
+    """Set capture.given_poses from --given-poses, the raw capture's gt/, or the E2NeRF poses."""
+    frame_size = (capture.height, capture.width)
+    if config.given_poses is not None:
+        capture.given_poses = poses_from_transforms(Path(config.given_poses), capture.exposures, k, frame_size)
+        capture.input_paths.append(Path(config.given_poses))
+    elif capture.given_poses is None and capture.gt_dir is not None and (capture.gt_dir / GT_TRANSFORMS_NAME).is_file():
+        path = capture.gt_dir / GT_TRANSFORMS_NAME
+        capture.given_poses = poses_from_transforms(path, capture.exposures, k, frame_size)
+        capture.input_paths.append(path)
+    if capture.given_poses is None:
+        raise ValueError(
+            f"{capture.source}: --poses given needs poses, but this input carries none "
+            "(AEDAT4 recordings never do); pass --given-poses transforms.json or use --poses colmap"
+        )

@@ -1,0 +1,105 @@
+"""The one rendering contract that every rasteriser backend implements.
+
+Shapes: N Gaussians, C cameras, D feature channels, H x W pixels.
+Cameras use the OpenCV convention (x right, y down, z forward) for `viewmats` (world-to-camera).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Protocol
+
+import torch
+from torch import Tensor
+
+#: gsplat's compositing rules, shared by every backend.
+ALPHA_MAX = 0.99
+ALPHA_MIN = 1.0 / 255.0
+TRANSMITTANCE_MIN = 1e-4
+LOW_PASS_EPS = 0.3
+DEFAULT_NEAR = 0.01
+DEFAULT_FAR = 1e10
+
+
+@dataclass
+class RasterOutputs:
+    """What a backend returns.
+
+    Attributes:
+        render: [C, H, W, D] alpha-composited features (background added as (1 - alpha) * bg).
+        depth: [C, H, W, 1] expected depth (alpha-weighted z, divided by alpha where alpha > 0).
+        alpha: [C, H, W, 1] accumulated opacity.
+        means2d: [C, N, 2] screen-space centres in pixels; a leaf-like tensor whose `.grad`
+            after backward holds the densification gradient (the backend calls retain_grad()).
+        radii: [C, N] int32 screen radius in pixels, 0 where culled.
+        visible: [C, N] bool, radii > 0.
+    """
+
+    render: Tensor
+    depth: Tensor
+    alpha: Tensor
+    means2d: Tensor
+    radii: Tensor
+    visible: Tensor
+
+
+class RasterBackend(Protocol):
+    """Signature of every backend (CPU reference in torch_backend, CUDA in gsplat_backend)."""
+
+    def __call__(
+        self,
+        means: Tensor,  # [N, 3] world
+        quats: Tensor,  # [N, 4] wxyz, need not be normalised
+        scales: Tensor,  # [N, 3] activated (positive) world units
+        opacities: Tensor,  # [N] activated, in (0, 1)
+        features: Tensor,  # [N, D] or [C, N, D] colours/extra channels, already evaluated
+        viewmats: Tensor,  # [C, 4, 4] world-to-camera, OpenCV
+        Ks: Tensor,  # [C, 3, 3] pixel intrinsics
+        width: int,
+        height: int,
+        backgrounds: Optional[Tensor] = None,  # [C, D]
+        near_plane: float = DEFAULT_NEAR,
+        far_plane: float = DEFAULT_FAR,
+    ) -> RasterOutputs: ...
+
+
+def check_inputs(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, features: Tensor,
+                 viewmats: Tensor, Ks: Tensor) -> None:
+    """Raise ValueError naming the argument whose shape breaks the contract."""
+    n = means.shape[0]
+    expect = {
+        "means": (means, (n, 3)),
+        "quats": (quats, (n, 4)),
+        "scales": (scales, (n, 3)),
+        "opacities": (opacities, (n,)),
+    }
+    for name, (tensor, shape) in expect.items():
+        if tuple(tensor.shape) != shape:
+            raise ValueError(f"rasterize: {name} has shape {tuple(tensor.shape)}, expected {shape}")
+    if features.dim() not in (2, 3) or features.shape[-2] != n:
+        raise ValueError(f"rasterize: features has shape {tuple(features.shape)}, expected [N={n}, D] or [C, N, D]")
+    c = viewmats.shape[0]
+    if tuple(viewmats.shape) != (c, 4, 4):
+        raise ValueError(f"rasterize: viewmats has shape {tuple(viewmats.shape)}, expected [C, 4, 4]")
+    if tuple(Ks.shape) != (c, 3, 3):
+        raise ValueError(f"rasterize: Ks has shape {tuple(Ks.shape)}, expected [C={c}, 3, 3]")
+    if features.dim() == 3 and features.shape[0] != c:
+        raise ValueError(f"rasterize: features has {features.shape[0]} cameras, viewmats has {c}")
+
+
+def select_backend(device: torch.device, force: Optional[str] = None) -> RasterBackend:
+    """The backend for tensors on `device`: gsplat on CUDA, the torch reference elsewhere.
+
+    Args:
+        force: "torch" or "gsplat" to override the choice (config field `rasterizer`).
+    """
+    name = force if force not in (None, "auto") else ("gsplat" if device.type == "cuda" else "torch")
+    if name == "gsplat":
+        from edygs_ns.render.gsplat_backend import rasterize_gsplat
+
+        return rasterize_gsplat
+    if name == "torch":
+        from edygs_ns.render.torch_backend import rasterize_torch
+
+        return rasterize_torch
+    raise ValueError(f"unknown rasterizer backend {name!r}; choose 'auto', 'torch' or 'gsplat'")

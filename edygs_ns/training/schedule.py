@@ -1,0 +1,79 @@
+"""The three-phase EDyGS schedule as pure functions of the step.
+
+1. ``POSE_INIT``: fit the Gaussians to the EDI latents at the initial poses; mask, poses and
+   deformation frozen.
+2. ``STATIC``: static region + motion-mask field + camera poses (event, EDI with the static
+   term, mask L1).
+3. ``DYNAMIC``: deformation on; mask and poses refined (motion loss, mask consistency).
+
+What trains and which losses count in each phase is decided here and nowhere else.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+from typing import Dict, FrozenSet
+
+
+class Phase(str, Enum):
+    POSE_INIT = "pose_init"
+    STATIC = "static"
+    DYNAMIC = "dynamic"
+
+
+#: parameter-group names (also the optimizer keys of the method config).
+GAUSSIAN_GROUPS: FrozenSet[str] = frozenset({"means", "scales", "quats", "features_dc", "features_rest", "opacities"})
+MASK_GROUP = "mask_logit"
+CAMERA_GROUP = "camera_opt"
+DEFORMATION_GROUP = "deformation"
+
+TRAINABLE: Dict[Phase, FrozenSet[str]] = {
+    Phase.POSE_INIT: GAUSSIAN_GROUPS,
+    Phase.STATIC: GAUSSIAN_GROUPS | {MASK_GROUP, CAMERA_GROUP},
+    Phase.DYNAMIC: GAUSSIAN_GROUPS | {MASK_GROUP, CAMERA_GROUP, DEFORMATION_GROUP},
+}
+
+#: loss terms that are active in each phase (their weights live in the model config).
+ACTIVE_LOSSES: Dict[Phase, FrozenSet[str]] = {
+    Phase.POSE_INIT: frozenset({"edi"}),
+    Phase.STATIC: frozenset({"edi", "edi_static", "event", "mask_l1"}),
+    Phase.DYNAMIC: frozenset({"edi", "event", "mask_consistency", "motion"}),
+}
+
+
+@dataclass
+class PhaseSchedule:
+    """Phase lengths in iterations; the dynamic phase runs until the end of training."""
+
+    pose_init_iters: int = 300
+    """iterations of the pose-init warm-up (phase 1)"""
+    static_iters: int = 1200
+    """iterations of static-region reconstruction (phase 2) after the warm-up"""
+
+    @property
+    def static_start(self) -> int:
+        return self.pose_init_iters
+
+    @property
+    def dynamic_start(self) -> int:
+        return self.pose_init_iters + self.static_iters
+
+
+def phase_at(step: int, schedule: PhaseSchedule) -> Phase:
+    """The phase that training step ``step`` (0-based) belongs to."""
+    if step < schedule.static_start:
+        return Phase.POSE_INIT
+    if step < schedule.dynamic_start:
+        return Phase.STATIC
+    return Phase.DYNAMIC
+
+
+def is_trainable(group: str, phase: Phase) -> bool:
+    """Whether parameter group ``group`` receives gradients in ``phase``."""
+    return group in TRAINABLE[phase]
+
+
+def is_active(loss: str, phase: Phase) -> bool:
+    """Whether loss term ``loss`` counts in ``phase``."""
+    return loss in ACTIVE_LOSSES[phase]

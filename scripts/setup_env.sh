@@ -1,0 +1,25 @@
+#!/usr/bin/env bash
+# Create (or reuse) .venv with edygs_ns installed editable, plus the system packages it needs.
+# Usage: bash scripts/setup_env.sh [test]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+if ! command -v ffmpeg >/dev/null 2>&1; then
+  echo "[setup] installing ffmpeg (ns-render needs it)"
+  if [ "$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi
+  $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq ffmpeg >/dev/null
+fi
+if [ ! -x .venv/bin/python ]; then
+  echo "[setup] creating .venv"
+  python3 -m venv .venv
+fi
+extra=""
+if [ "${1:-}" = "test" ]; then extra="[test]"; fi
+stamp=".venv/.edygs-installed${extra}"
+if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
+  echo "[setup] installing edygs_ns${extra} and its dependencies (first time: several minutes)"
+  start=$(date +%s)
+  .venv/bin/python -m pip install -q --upgrade pip >/dev/null
+  .venv/bin/python -m pip install -q -e ".${extra}"
+  echo "[setup] install took $(( $(date +%s) - start )) s"
+  touch "$stamp"
+fi

@@ -1,0 +1,43 @@
+"""The phase switch: which phase each step is in, what trains, which losses count."""
+
+from edygs_ns.configs.ablations import ABLATIONS, apply_ablation
+from edygs_ns.model.edygs_model import EdygsModelConfig
+from edygs_ns.training.schedule import (
+    CAMERA_GROUP, DEFORMATION_GROUP, MASK_GROUP, Phase, PhaseSchedule, is_active, is_trainable, phase_at,
+)
+
+
+def test_phase_boundaries():
+    s = PhaseSchedule(pose_init_iters=10, static_iters=20)
+    assert [phase_at(i, s) for i in (0, 9, 10, 29, 30, 10_000)] == [
+        Phase.POSE_INIT, Phase.POSE_INIT, Phase.STATIC, Phase.STATIC, Phase.DYNAMIC, Phase.DYNAMIC,
+    ]
+    assert phase_at(0, PhaseSchedule(0, 0)) is Phase.DYNAMIC
+
+
+def test_what_trains_when():
+    assert not is_trainable(CAMERA_GROUP, Phase.POSE_INIT)
+    assert not is_trainable(MASK_GROUP, Phase.POSE_INIT)
+    assert is_trainable(MASK_GROUP, Phase.STATIC) and is_trainable(CAMERA_GROUP, Phase.STATIC)
+    assert not is_trainable(DEFORMATION_GROUP, Phase.STATIC)
+    assert all(is_trainable(g, Phase.DYNAMIC) for g in (MASK_GROUP, CAMERA_GROUP, DEFORMATION_GROUP, "means"))
+
+
+def test_which_losses_count_when():
+    assert is_active("edi", Phase.POSE_INIT) and not is_active("event", Phase.POSE_INIT)
+    assert is_active("edi_static", Phase.STATIC) and is_active("mask_l1", Phase.STATIC)
+    assert not is_active("motion", Phase.STATIC)
+    assert is_active("motion", Phase.DYNAMIC) and is_active("mask_consistency", Phase.DYNAMIC)
+    assert not is_active("edi_static", Phase.DYNAMIC) and not is_active("mask_l1", Phase.DYNAMIC)
+
+
+def test_ablation_presets_set_switches_and_skip_warmup_without_edi():
+    for name, switches in ABLATIONS.items():
+        cfg = EdygsModelConfig(ablation=name)  # type: ignore[arg-type]
+        assert {k: getattr(cfg, k) for k in switches} == switches
+    cfg = EdygsModelConfig(schedule=PhaseSchedule(5, 7), ablation="events-only")
+    assert (cfg.schedule.pose_init_iters, cfg.schedule.static_iters) == (0, 12)
+    apply_ablation(cfg)  # idempotent
+    assert (cfg.schedule.pose_init_iters, cfg.schedule.static_iters) == (0, 12)
+    plain = EdygsModelConfig(use_event_loss=False)
+    assert plain.use_event_loss is False and plain.ablation is None
