@@ -92,7 +92,7 @@ def test_ssim_matches_torchmetrics_reflect_and_valid():
     _, full_map = full(y.permute(0, 3, 1, 2), x.permute(0, 3, 1, 2))
     half = 5
     expected_valid = float(full_map[..., half:-half, half:-half].mean())
-    assert ssim(y, x) == pytest.approx(expected_valid, abs=1e-4)
+    assert ssim(y, x, padding="valid") == pytest.approx(expected_valid, abs=1e-4)
     assert abs(expected_valid - expected_reflect) > 1e-3  # the two conventions really differ here
 
 
@@ -216,13 +216,17 @@ def test_lpips_loads_backbone_from_hub_cache(offline_hub):
     assert pred.grad is not None and float(pred.grad.abs().sum()) > 0
 
 
-def test_lpips_explicit_folder_wins_over_hub(offline_hub, tmp_path):
+def test_lpips_explicit_path_env_var_and_size_check(offline_hub, tmp_path, monkeypatch):
     torchvision = pytest.importorskip("torchvision")
     folder = tmp_path / "weights"
     folder.mkdir()
-    torch.save(torchvision.models.alexnet(weights=None).state_dict(), folder / backbone_filename("alex"))
+    weights_file = folder / backbone_filename("alex")
+    torch.save(torchvision.models.alexnet(weights=None).state_dict(), weights_file)
+    # not in the hub cache: found through the argument (folder or file) or the environment variable
     metric, reason = lpips_or_none("alex", weights_path=folder)
-    assert reason == "" and metric is not None
-    assert metric.weights_file == folder / "alexnet-owt-7be5be79.pth"
+    assert reason == "" and metric is not None and metric.weights_file == weights_file
+    assert load_lpips("alex", weights_path=weights_file).weights_file == weights_file
+    monkeypatch.setenv(lpips_loader.LPIPS_WEIGHTS_ENV, str(folder))
+    assert load_lpips("alex").weights_file == weights_file
     with pytest.raises(ValueError, match="at least 31"):
         metric(torch.rand(1, 16, 16, 3), torch.rand(1, 16, 16, 3))

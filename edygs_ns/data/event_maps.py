@@ -201,9 +201,12 @@ def cached_rgb_images(
     outputs = [cache.path / name for name in names]
     if cache.is_complete() and all(p.is_file() for p in outputs):
         return outputs
+    from nerfstudio.utils.rich_utils import get_progress
+
     cache.begin()
-    for src, dst in zip(sources, outputs):
-        save_rgb_uint8(read_rgb_uint8(src, background=background), dst)
+    with get_progress(f"Compositing {kind} images") as progress:
+        for i in progress.track(range(len(sources)), total=len(sources)):
+            save_rgb_uint8(read_rgb_uint8(sources[i], background=background), outputs[i])
     cache.finish()
     return outputs
 

@@ -219,6 +219,8 @@ def load_lpips(
 
     Returns:
         A callable (pred [B, H, W, 3], gt [B, H, W, 3]) -> [B] LPIPS, differentiable in pred.
+        Numbers are only meaningful with the real ImageNet backbone weights; any state dict
+        with torchvision's keys loads (tests use random ones to check the loading path).
 
     Raises:
         LpipsUnavailable: weights missing or unreadable (the message says what to do).

@@ -30,7 +30,7 @@ NUM_CHANNELS = 3
 #: "reflect" (reflect-padded 'same' output, torchmetrics >= 1.x and so nerfstudio's ns-eval),
 #: "zero" (zero-padded 'same' output, the original 3DGS code and its descendants' metric scripts).
 SsimPadding = Literal["valid", "reflect", "zero"]
-SSIM_DEFAULT_PADDING: SsimPadding = "valid"
+SSIM_DEFAULT_PADDING: SsimPadding = "zero"
 #: IoU reported when both the predicted and the ground-truth masks are empty.
 EMPTY_UNION_IOU = 1.0
 
@@ -90,7 +90,7 @@ def psnr(
     return float(sum(values) / len(values))
 
 
-def gaussian_window(size: int = SSIM_WINDOW_SIZE, sigma: float = SSIM_SIGMA, device=None,
+def gaussian_window(size: int = SSIM_WINDOW_SIZE, sigma: float = SSIM_SIGMA, device: Optional[torch.device] = None,
                     dtype: torch.dtype = torch.float32) -> Float[Tensor, "size size"]:
     """Normalised 2D Gaussian window [size, size] with standard deviation `sigma` pixels."""
     offsets = torch.arange(size, device=device, dtype=dtype) - (size - 1) / 2.0

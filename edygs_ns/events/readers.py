@@ -21,6 +21,7 @@ windows are found by binary search on the timestamps and only the window is read
 from __future__ import annotations
 
 import re
+import warnings
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
@@ -365,7 +366,11 @@ def _text_preamble(path: Path) -> Tuple[Optional[SensorSize], int, str]:
 def _load_text(path: Path) -> _RawEvents:
     sensor_size, skip, delimiter = _text_preamble(path)
     try:
-        table = np.loadtxt(path, comments="#", delimiter=delimiter or None, skiprows=skip, ndmin=2, dtype=np.float64)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*input contained no data")  # empty file: 0 events
+            table = np.loadtxt(
+                path, comments="#", delimiter=delimiter or None, skiprows=skip, ndmin=2, dtype=np.float64
+            )
     except ValueError as err:
         raise ValueError(f"{path}: malformed event line ({err}); expected 't x y p' with t in seconds") from err
     if table.shape[0] == 0:

@@ -368,7 +368,7 @@ def check_event_coverage(source: EventSource, exposures: Sequence[Exposure], nam
 # Given poses
 
 
-def _slerp_poses(times: np.ndarray, c2w: np.ndarray, query: np.ndarray) -> np.ndarray:
+def interpolate_poses(times: np.ndarray, c2w: np.ndarray, query: np.ndarray) -> np.ndarray:
     """Poses at query times: rotations slerped, centres linear; clamped outside the known times.
 
     Args:
@@ -439,7 +439,7 @@ def poses_from_transforms(path: Path, exposures: Sequence[Exposure], k: int, fra
         times, index = np.unique(times[order], return_index=True)
         known = np.array([frames[order[i]]["transform_matrix"] for i in index], dtype=np.float64)
         for i, e in enumerate(exposures):
-            c2w[i] = _slerp_poses(times, known, latent_times_us(e.start_us, e.end_us, k))
+            c2w[i] = interpolate_poses(times, known, latent_times_us(e.start_us, e.end_us, k))
     else:
         table = {(int(f["blurry_index"]), int(f["latent_index"])): f["transform_matrix"] for f in frames}
         for i, e in enumerate(exposures):

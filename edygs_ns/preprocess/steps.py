@@ -67,11 +67,14 @@ def progress_bar(description: str, total: Optional[int]) -> Iterator[Callable[..
     columns = [SpinnerColumn(), TextColumn(description), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()]
     if total is not None:
         columns.append(TimeRemainingColumn())
-    with Progress(*columns, console=CONSOLE, transient=True) as progress:
+    with Progress(*columns, console=CONSOLE, transient=False) as progress:
         task = progress.add_task(description, total=total)
+        done = [0]
 
         def advance(n: int = 1) -> None:
-            progress.advance(task, n)
+            step = n if total is None else max(0, min(n, total - done[0]))  # never past the total
+            done[0] += step
+            progress.advance(task, step)
 
         yield advance
 

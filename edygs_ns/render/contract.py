@@ -13,7 +13,8 @@ import torch
 from torch import Tensor
 
 #: gsplat's compositing rules, shared by every backend.
-ALPHA_MAX = 0.99
+#: gsplat 1.4.0's kernels clamp alpha at 0.999 (3DGS used 0.99); the CPU backend must match it.
+ALPHA_MAX = 0.999
 ALPHA_MIN = 1.0 / 255.0
 TRANSMITTANCE_MIN = 1e-4
 LOW_PASS_EPS = 0.3

@@ -13,13 +13,13 @@ Conventions: world units are arbitrary ("units"), y is up; the room is open behi
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
-from typing import List, Optional, Sequence, Tuple
+from functools import cached_property, lru_cache
+from typing import Any, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 #: Texels per world unit of the procedural textures (sets how fine their detail is).
-TEXELS_PER_UNIT = 128
+TEXELS_PER_UNIT = 64
 #: Smallest and largest texture side in texels.
 TEXTURE_MIN_TEXELS = 32
 TEXTURE_MAX_TEXELS = 1024
@@ -196,6 +196,16 @@ class Scene:
         """The static quads stacked for vectorised ray casting (built once)."""
         return QuadStack.from_quads(self.quads)
 
+    @cached_property
+    def atlas(self) -> TextureAtlas:
+        """The static quads' textures packed for one lookup (built once)."""
+        return TextureAtlas.from_textures([q.texture for q in self.quads])
+
+    @cached_property
+    def quad_shading(self) -> np.ndarray:
+        """[Q] float32 Lambert factor of each static quad (seen from either side)."""
+        return _shade(self.quad_stack.normals, two_sided=True).astype(np.float32)
+
     @property
     def room_diameter(self) -> float:
         """Diagonal of the room box in world units."""
@@ -240,15 +250,24 @@ class PinholeCamera:
             supersample: sub-pixel samples per pixel side (>= 1).
 
         Returns:
-            [H*s, W*s, 3] float64 unit directions, sub-pixel rows/columns in image order.
+            [H*s, W*s, 3] float32 unit directions, sub-pixel rows/columns in image order.
         """
-        s = int(supersample)
-        cols = (np.arange(self.width * s) + 0.5) / s
-        rows = (np.arange(self.height * s) + 0.5) / s
-        u, v = np.meshgrid(cols, rows)
-        d_cam = np.stack([(u - self.cx) / self.fl_x, -(v - self.cy) / self.fl_y, -np.ones_like(u)], axis=-1)
-        d_world = d_cam @ np.asarray(c2w, dtype=np.float64)[:3, :3].T
-        return d_world / np.linalg.norm(d_world, axis=-1, keepdims=True)
+        d_cam = _camera_space_directions(self, int(supersample))
+        return d_cam @ np.asarray(c2w, dtype=np.float64)[:3, :3].T.astype(np.float32)
+
+
+@lru_cache(maxsize=4)
+def _camera_space_directions(camera: PinholeCamera, supersample: int) -> np.ndarray:
+    """[H*s, W*s, 3] float32 unit camera-space (OpenGL) directions of the sub-pixel centres."""
+    s = supersample
+    cols = (np.arange(camera.width * s) + 0.5) / s
+    rows = (np.arange(camera.height * s) + 0.5) / s
+    u, v = np.meshgrid(cols, rows)
+    d_cam = np.stack([(u - camera.cx) / camera.fl_x, -(v - camera.cy) / camera.fl_y, -np.ones_like(u)], axis=-1)
+    d_cam /= np.linalg.norm(d_cam, axis=-1, keepdims=True)
+    d_cam = d_cam.astype(np.float32)
+    d_cam.flags.writeable = False
+    return d_cam
 
 
 # ----------------------------------------------------------------------------------------------
@@ -342,25 +361,19 @@ def procedural_texture(rng: np.random.Generator, size_u: float, size_v: float,
     return np.clip(img, TEXTURE_MIN_VALUE, TEXTURE_MAX_VALUE).astype(np.float32)
 
 
-def sample_bilinear(texture: np.ndarray, a: np.ndarray, b: np.ndarray, wrap_u: bool = False) -> np.ndarray:
-    """Bilinear texture lookup.
+def _bilinear(flat: np.ndarray, offset: Any, tu: Any, tv: Any, a: np.ndarray, b: np.ndarray,
+              wrap_u: bool) -> np.ndarray:
+    """Bilinear lookup in row-major textures stored back to back in ``flat`` [sum Tv*Tu, 3].
 
-    Args:
-        texture: [Tv, Tu, 3] texels.
-        a: [N] coordinate along columns in [0, 1] (texel centres at (i + 0.5) / Tu).
-        b: [N] coordinate along rows in [0, 1].
-        wrap_u: wrap around in a (for the sphere's longitude); otherwise clamp at the edges.
-
-    Returns:
-        [N, 3] interpolated values.
+    ``offset`` (first texel), ``tu`` and ``tv`` (texture sizes) are scalars or [N] arrays, one
+    per sample; a, b are [N] coordinates in [0, 1] along columns and rows.
     """
-    tv, tu = texture.shape[:2]
-    flat = texture.reshape(-1, texture.shape[-1])
-    x = np.asarray(a, dtype=np.float32) * tu - 0.5
-    y = np.asarray(b, dtype=np.float32) * tv - 0.5
+    half = np.float32(0.5)
+    x = np.asarray(a, dtype=np.float32) * np.asarray(tu, dtype=np.float32) - half
+    y = np.asarray(b, dtype=np.float32) * np.asarray(tv, dtype=np.float32) - half
     x0 = np.floor(x)
     y0 = np.floor(y)
-    fx = (x - x0)[:, None]
+    fx = (x - x0)[:, None]  # float32 throughout: mixing in float64 makes the blend ~5x slower
     fy = (y - y0)[:, None]
     x0 = x0.astype(np.int64)
     y0 = y0.astype(np.int64)
@@ -368,14 +381,61 @@ def sample_bilinear(texture: np.ndarray, a: np.ndarray, b: np.ndarray, wrap_u: b
         xa, xb = x0 % tu, (x0 + 1) % tu
     else:
         xa, xb = np.clip(x0, 0, tu - 1), np.clip(x0 + 1, 0, tu - 1)
-    row_a = np.clip(y0, 0, tv - 1) * tu
-    row_b = np.clip(y0 + 1, 0, tv - 1) * tu
-    top = flat[row_a + xa]
-    top += fx * (flat[row_a + xb] - top)
-    bottom = flat[row_b + xa]
-    bottom += fx * (flat[row_b + xb] - bottom)
+    row_a = offset + np.clip(y0, 0, tv - 1) * tu
+    row_b = offset + np.clip(y0 + 1, 0, tv - 1) * tu
+    flat = np.asarray(flat, dtype=np.float32)
+    top = np.take(flat, row_a + xa, axis=0)  # np.take: several times faster than flat[idx]
+    top += fx * (np.take(flat, row_a + xb, axis=0) - top)
+    bottom = np.take(flat, row_b + xa, axis=0)
+    bottom += fx * (np.take(flat, row_b + xb, axis=0) - bottom)
     top += fy * (bottom - top)
     return top
+
+
+def sample_bilinear(texture: np.ndarray, a: np.ndarray, b: np.ndarray, wrap_u: bool = False) -> np.ndarray:
+    """Bilinear texture lookup.
+
+    Args:
+        texture: [Tv, Tu, C] texels.
+        a: [N] coordinate along columns in [0, 1] (texel centres at (i + 0.5) / Tu).
+        b: [N] coordinate along rows in [0, 1].
+        wrap_u: wrap around in a (for the sphere's longitude); otherwise clamp at the edges.
+
+    Returns:
+        [N, C] interpolated values.
+    """
+    tv, tu = texture.shape[:2]
+    return _bilinear(texture.reshape(tv * tu, -1), 0, tu, tv, a, b, wrap_u)
+
+
+@dataclass(frozen=True)
+class TextureAtlas:
+    """Q textures of different sizes stored back to back, for one lookup over many quads.
+
+    Attributes:
+        texels: [sum Tv*Tu, 3] float32 texels, each texture row-major.
+        offsets: [Q] int64 index of each texture's first texel.
+        widths: [Q] int64 Tu of each texture.
+        heights: [Q] int64 Tv of each texture.
+    """
+
+    texels: np.ndarray
+    offsets: np.ndarray
+    widths: np.ndarray
+    heights: np.ndarray
+
+    @classmethod
+    def from_textures(cls, textures: Sequence[np.ndarray]) -> "TextureAtlas":
+        """Pack [Tv, Tu, 3] textures."""
+        sizes = np.array([t.shape[0] * t.shape[1] for t in textures], dtype=np.int64)
+        offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        texels = np.concatenate([t.reshape(-1, t.shape[-1]) for t in textures]).astype(np.float32)
+        return cls(texels, offsets, np.array([t.shape[1] for t in textures], dtype=np.int64),
+                   np.array([t.shape[0] for t in textures], dtype=np.int64))
+
+    def sample(self, ids: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """[N, 3] bilinear lookups at coordinates (a, b) in [0, 1] of textures ``ids`` [N]."""
+        return _bilinear(self.texels, self.offsets[ids], self.widths[ids], self.heights[ids], a, b, wrap_u=False)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -537,13 +597,11 @@ def render(scene: Scene, camera: PinholeCamera, c2w: np.ndarray, obj: ObjectStat
     best_id[t_sphere < best_t] = sphere_id
     best_t = np.minimum(best_t, t_sphere)
 
-    color = np.full((n_rays, 3), BACKGROUND_VALUE)
-    for i in ids:
-        quad = scene.quads[i]
-        sel = best_id == i
-        if np.any(sel):
-            albedo = sample_bilinear(quad.texture, best_a[sel], best_b[sel])
-            color[sel] = albedo * _shade(quad.normal[None, :], two_sided=True)
+    color = np.full((n_rays, 3), BACKGROUND_VALUE, dtype=np.float32)
+    on_quad = (best_id >= 0) & (best_id < sphere_id)
+    quad_ids = best_id[on_quad]
+    albedo = scene.atlas.sample(quad_ids, best_a[on_quad], best_b[on_quad])
+    color[on_quad] = albedo * scene.quad_shading[quad_ids][:, None]
     sel = best_id == sphere_id
     if np.any(sel):
         normals = (origin + best_t[sel, None] * dirs[sel] - obj.centre) / scene.sphere.radius

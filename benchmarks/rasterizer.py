@@ -1,0 +1,164 @@
+"""Rasteriser timings: forward and forward+backward for both backends.
+
+Usage: ``python benchmarks/rasterizer.py --out FILE.json [--repeats 5] [--cases 20000x128 ...]``
+
+Scenes: one pinhole camera (53 degree field of view) looking at Gaussians spread uniformly over
+its frustum between depths 2 and 6, random orientations, anisotropic log-normal scales, opacities
+sigmoid(N(0, 1.5)). The world scale shrinks as 1/sqrt(N) so the depth complexity stays about
+``--complexity`` Gaussians per pixel (3-sigma footprints) at every N and every resolution, like a
+real scene whose detail grows with its Gaussian count.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import statistics
+import time
+from dataclasses import asdict, dataclass
+from typing import Callable, Dict, List, Tuple
+
+import torch
+from rich.table import Table
+
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from edygs_ns.render.torch_backend import rasterize_torch
+
+#: Gaussian counts and square image sizes of the default grid.
+DEFAULT_COUNTS = (1_000, 5_000, 20_000, 100_000)
+DEFAULT_SIZES = (64, 128, 400)
+#: Gaussians covering an average pixel (3-sigma footprints).
+DEFAULT_COMPLEXITY = 35.0
+#: nearest and farthest depth of the scene, world units.
+DEPTH_RANGE = (2.0, 6.0)
+#: focal length as a fraction of the image width (53 degree horizontal field of view).
+FOCAL_FRACTION = 1.0
+#: log-normal spread of the per-axis scales.
+SCALE_LOG_STD = 0.5
+#: spread of opacity logits.
+OPACITY_LOGIT_STD = 1.5
+#: feature channels rendered (RGB + motion mask).
+CHANNELS = 4
+
+
+@dataclass
+class Record:
+    backend: str
+    n_gaussians: int
+    width: int
+    height: int
+    forward_ms: float
+    forward_backward_ms: float
+
+
+def make_scene(n: int, size: int, complexity: float, device: torch.device, seed: int = 0) -> Dict[str, torch.Tensor]:
+    """A random scene of n Gaussians in front of one camera of size x size pixels."""
+    g = torch.Generator().manual_seed(seed)
+    focal = FOCAL_FRACTION * size
+    near, far = DEPTH_RANGE
+    z = near + (far - near) * torch.rand(n, generator=g)
+    half = 0.5 * size / focal
+    xy = (torch.rand(n, 2, generator=g) * 2 - 1) * half * z[:, None]
+    means = torch.cat([xy, z[:, None]], dim=1)
+    # pixel sigma s solves n * pi * (3 s)^2 = complexity * pixels; world sigma = s * z / focal
+    sigma_px = math.sqrt(complexity * size * size / (n * math.pi * 9.0))
+    world = sigma_px * z[:, None] / focal
+    scales = world * torch.exp(SCALE_LOG_STD * torch.randn(n, 3, generator=g) - 0.5 * SCALE_LOG_STD**2)
+    scene = {
+        "means": means,
+        "quats": torch.randn(n, 4, generator=g),
+        "scales": scales,
+        "opacities": torch.sigmoid(OPACITY_LOGIT_STD * torch.randn(n, generator=g)),
+        "features": torch.rand(n, CHANNELS, generator=g),
+        "viewmats": torch.eye(4)[None],
+        "Ks": torch.tensor([[[focal, 0.0, size / 2], [0.0, focal, size / 2], [0.0, 0.0, 1.0]]]),
+    }
+    return {k: v.to(device) for k, v in scene.items()}
+
+
+def _time(fn: Callable[[], None], repeats: int, sync: Callable[[], None]) -> float:
+    fn()  # warm-up
+    sync()
+    samples = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        sync()
+        samples.append(1e3 * (time.perf_counter() - start))
+    return statistics.median(samples)
+
+
+def measure(backend: str, n: int, size: int, complexity: float, repeats: int) -> Record:
+    """Median forward and forward+backward times in milliseconds."""
+    device = torch.device("cuda" if backend == "gsplat" else "cpu")
+    if backend == "gsplat":
+        from edygs_ns.render.gsplat_backend import rasterize_gsplat as raster
+    else:
+        raster = rasterize_torch
+    scene = make_scene(n, size, complexity, device)
+    leaves = {k: v.clone().requires_grad_(k not in ("Ks",)) for k, v in scene.items()}
+    weights = torch.rand(1, size, size, CHANNELS, device=device)
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+
+    def forward() -> torch.Tensor:
+        out = raster(
+            leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["features"],
+            leaves["viewmats"], leaves["Ks"], size, size,
+        )
+        return (out.render * weights).sum() + out.depth.mean() + out.alpha.mean()
+
+    def forward_backward() -> None:
+        forward().backward()
+        for v in leaves.values():
+            v.grad = None
+
+    fwd = _time(lambda: forward(), repeats, sync)
+    fwd_bwd = _time(forward_backward, repeats, sync)
+    return Record(backend, n, size, size, round(fwd, 2), round(fwd_bwd, 2))
+
+
+def parse_cases(cases: List[str]) -> List[Tuple[int, int]]:
+    """'20000x128' -> (20000, 128)."""
+    out = []
+    for case in cases:
+        n, _, size = case.partition("x")
+        if not n.isdigit() or not size.isdigit():
+            raise ValueError(f"--cases: {case!r} is not N x SIZE, e.g. 20000x128")
+        out.append((int(n), int(size)))
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", required=True, help="JSON file for the records")
+    parser.add_argument("--repeats", type=int, default=5, help="timed runs per case (median reported)")
+    parser.add_argument("--complexity", type=float, default=DEFAULT_COMPLEXITY, help="Gaussians per pixel")
+    parser.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="torch CPU threads")
+    parser.add_argument("--cases", nargs="*", default=None, help="NxSIZE cases (default: full grid)")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    cases = parse_cases(args.cases) if args.cases else [(n, s) for n in DEFAULT_COUNTS for s in DEFAULT_SIZES]
+    backends = ["torch"] + (["gsplat"] if torch.cuda.is_available() else [])
+    load = os.getloadavg()
+    CONSOLE.log(f"threads={torch.get_num_threads()} load average (1, 5, 15 min)={load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
+    records: List[Record] = []
+    for backend in backends:
+        for n, size in cases:
+            rec = measure(backend, n, size, args.complexity, args.repeats)
+            CONSOLE.log(f"{backend} N={n} {size}x{size}: forward {rec.forward_ms} ms, forward+backward {rec.forward_backward_ms} ms")
+            records.append(rec)
+    table = Table(title=f"rasteriser timings, median of {args.repeats} (ms)")
+    for col in ("backend", "N", "image", "forward", "forward+backward"):
+        table.add_column(col, justify="right")
+    for r in records:
+        table.add_row(r.backend, str(r.n_gaussians), f"{r.width}x{r.height}", f"{r.forward_ms:.1f}", f"{r.forward_backward_ms:.1f}")
+    CONSOLE.print(table)
+    with open(args.out, "w", encoding="utf-8") as f:
+        json.dump([asdict(r) for r in records], f, indent=1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,79 @@
+"""Scene folder layouts: detect which one a folder has and read it into a SceneRecord."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Dict, Optional, Tuple
+
+from edygs_ns.data.layouts.common import LAYOUT_NAMES, SceneRecord
+from edygs_ns.data.layouts.e2nerf_real import is_e2nerf_real, read_e2nerf_real
+from edygs_ns.data.layouts.e2nerf_synthetic import is_e2nerf_synthetic, read_e2nerf_synthetic
+from edygs_ns.data.layouts.processed import is_processed, read_processed
+
+#: What each layout needs, quoted when a folder matches none.
+LAYOUT_REQUIREMENTS: Dict[str, str] = {
+    "processed": "transforms.json + event_maps.npy (written by edygs-process)",
+    "e2nerf-synthetic": "transform_train.json + events.pt + train/r_<i>.png",
+    "e2nerf-real": "poses_bounds.npy + events.pt + images/",
+}
+#: Files that mark a raw capture, which must go through edygs-process first.
+RAW_CAPTURE_MARKER = "exposures.csv"
+
+#: Layout name -> (detector, reader) in detection order.
+_LAYOUTS: Dict[str, Tuple[Callable[[Path], bool], Callable[..., SceneRecord]]] = {
+    "processed": (is_processed, read_processed),
+    "e2nerf-synthetic": (is_e2nerf_synthetic, read_e2nerf_synthetic),
+    "e2nerf-real": (is_e2nerf_real, read_e2nerf_real),
+}
+
+
+def detect_layout(root: Path) -> str:
+    """The layout of a scene folder, judged by the files present.
+
+    Raises:
+        FileNotFoundError: the folder does not exist.
+        ValueError: the folder matches no layout; the message lists what each layout needs.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: scene folder not found")
+    for name, (detect, _) in _LAYOUTS.items():
+        if detect(root):
+            return name
+    expected = "; ".join(f"{name}: {needs}" for name, needs in LAYOUT_REQUIREMENTS.items())
+    hint = ""
+    if (root / RAW_CAPTURE_MARKER).is_file():
+        hint = " It looks like a raw capture: run `edygs-process` on it first."
+    raise ValueError(f"{root}: not a recognised scene folder. Expected one of: {expected}.{hint}")
+
+
+def read_scene(
+    root: Path,
+    layout: str = "auto",
+    theta: Optional[float] = None,
+    color_space: Optional[str] = None,
+    clip_max: float = 1.0,
+) -> SceneRecord:
+    """Read a scene folder of any supported layout.
+
+    Args:
+        root: the scene folder.
+        layout: "auto" (detect) or one of LAYOUT_NAMES.
+        theta: contrast threshold override (None: the scene's own, or 0.2 for E2NeRF data).
+        color_space: pixel encoding override (None: the scene's own, or "linear").
+        clip_max: EDI clip for layouts whose latents are computed here.
+
+    Raises:
+        ValueError: unknown layout name, or a folder that does not match.
+        FileNotFoundError: missing folder or files.
+    """
+    root = Path(root)
+    name = detect_layout(root) if layout == "auto" else layout
+    if name not in _LAYOUTS:
+        raise ValueError(f"unknown layout {layout!r}; choose 'auto' or one of {LAYOUT_NAMES}")
+    if layout != "auto" and not root.is_dir():
+        raise FileNotFoundError(f"{root}: scene folder not found")
+    _, reader = _LAYOUTS[name]
+    if name == "processed":
+        return reader(root, theta=theta, color_space=color_space)
+    return reader(root, theta=theta, color_space=color_space, clip_max=clip_max)

@@ -1,0 +1,136 @@
+"""Reader for E2NeRF's real (LLFF-style) scenes, captured with a DAVIS346.
+
+Folder::
+
+    images/000.jpg, 005.jpg, ...   blurry frames, in name order (E2NeRF names them {5*i:03d}.jpg)
+    poses_bounds.npy               [views * k, 17]: one row per LATENT, in time order
+    events.pt                      float tensor [views, 4, H*W]: signed counts, 4 bins per view
+
+A poses_bounds row is a 3x5 matrix [R | t | hwf] flattened row-major, then near and far.
+LLFF orders the rotation columns (down, right, back); we reorder them to OpenGL's
+(right, up, back): right = column 1, up = -column 0, back = column 2. hwf holds the image
+height, width and focal length of the images the poses were computed on; the focal length is
+rescaled to the stored images' width, and the principal point is the image centre.
+
+There is no ground truth. EDI latents are computed once and cached. The files carry no
+timestamps: latents are evenly spaced over [0, 1] (exposures back to back).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from edygs_ns.data.event_maps import cached_edi_latents, cached_events_pt
+from edygs_ns.data.layouts.common import (
+    POSE_SIZE,
+    Intrinsics,
+    SceneRecord,
+    image_size,
+    latent_grid,
+    uniform_latent_times,
+)
+from edygs_ns.events.edi import EdiConfig
+
+#: Pose file.
+POSES_BOUNDS_FILE = "poses_bounds.npy"
+#: Folder of blurry frames.
+IMAGES_FOLDER = "images"
+#: Event counts file.
+EVENTS_FILE = "events.pt"
+#: Image file suffixes accepted in images/ (compared lower-case).
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+#: Columns of a poses_bounds row: 15 for the 3x5 pose matrix, 2 for near/far.
+POSE_COLUMNS = 15
+BOUNDS_COLUMNS = 2
+#: A 3x5 LLFF pose: rows, columns.
+LLFF_ROWS, LLFF_COLS = 3, 5
+#: Default contrast threshold for E2NeRF data.
+DEFAULT_THETA = 0.2
+#: Default pixel encoding for E2NeRF data (DAVIS APS frames are linear).
+DEFAULT_COLOR_SPACE = "linear"
+
+
+def is_e2nerf_real(root: Path) -> bool:
+    """An E2NeRF real scene has poses_bounds.npy, events.pt and an images/ folder."""
+    return (root / POSES_BOUNDS_FILE).is_file() and (root / EVENTS_FILE).is_file() and (root / IMAGES_FOLDER).is_dir()
+
+
+def llff_to_opengl(poses: np.ndarray) -> np.ndarray:
+    """LLFF 3x5 poses [N, 3, 5] (columns down, right, back, t, hwf) to OpenGL c2w [N, 4, 4]."""
+    out = np.zeros((len(poses), POSE_SIZE, POSE_SIZE), dtype=np.float64)
+    out[:, :3, 0] = poses[:, :, 1]
+    out[:, :3, 1] = -poses[:, :, 0]
+    out[:, :3, 2] = poses[:, :, 2]
+    out[:, :3, 3] = poses[:, :, 3]
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def read_e2nerf_real(
+    root: Path, theta: Optional[float] = None, color_space: Optional[str] = None, clip_max: float = 1.0
+) -> SceneRecord:
+    """Read an E2NeRF real scene, computing (once) and caching its EDI latents.
+
+    Args:
+        root: the scene folder.
+        theta: contrast threshold for EDI (default DEFAULT_THETA).
+        color_space: encoding of the pixels (default "linear").
+        clip_max: EDI latents are clipped to [0, clip_max] in linear intensity.
+
+    Raises:
+        FileNotFoundError: a required file or folder is missing.
+        ValueError: poses_bounds.npy or events.pt disagree with the images (names the file and
+            both shapes).
+    """
+    folder = root / IMAGES_FOLDER
+    images = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES) if folder.is_dir() else []
+    if not images:
+        raise FileNotFoundError(f"{folder}: no blurry frames ({', '.join(IMAGE_SUFFIXES)})")
+    height, width = image_size(images[0])
+    events = root / EVENTS_FILE
+    event_maps = cached_events_pt(events, len(images), height, width, root)
+    k = int(event_maps.shape[1]) + 1
+
+    poses_file = root / POSES_BOUNDS_FILE
+    rows = np.load(poses_file, allow_pickle=False)
+    expected = (len(images) * k, POSE_COLUMNS + BOUNDS_COLUMNS)
+    if rows.shape != expected:
+        raise ValueError(
+            f"{poses_file}: has shape {rows.shape}, expected {expected}: one row per latent "
+            f"({len(images)} images x k={k} latents, k from {events.name}'s {k - 1} bins)"
+        )
+    llff = rows[:, :POSE_COLUMNS].reshape(-1, LLFF_ROWS, LLFF_COLS).astype(np.float64)
+    if not np.all(np.isfinite(llff)):
+        raise ValueError(f"{poses_file}: holds non-finite values")
+    hwf_width, focal = float(llff[0, 1, 4]), float(llff[0, 2, 4])
+    focal = focal * width / hwf_width if hwf_width > 0 else focal
+
+    edi = EdiConfig(
+        k=k,
+        theta=float(theta if theta is not None else DEFAULT_THETA),
+        color_space=color_space or DEFAULT_COLOR_SPACE,  # type: ignore[arg-type]
+        clip_max=clip_max,
+    )
+    latents = cached_edi_latents(root, images, event_maps, edi, sources=[events])
+    blurry_index, latent_index = latent_grid(len(images), k)
+    record = SceneRecord(
+        root=root,
+        layout="e2nerf-real",
+        intrinsics=Intrinsics(width=width, height=height, fx=focal, fy=focal, cx=width / 2.0, cy=height / 2.0),
+        k=k,
+        theta=edi.theta,
+        color_space=edi.color_space,
+        latent_c2w=llff_to_opengl(llff),
+        latent_times=uniform_latent_times(len(images), k),
+        blurry_index=blurry_index,
+        latent_index=latent_index,
+        latent_image_paths=[p for row in latents for p in row],
+        blurry_image_paths=images,
+        event_maps=event_maps,
+        pose_source="given",
+    )
+    record.check()
+    return record

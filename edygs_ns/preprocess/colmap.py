@@ -1,0 +1,296 @@
+"""COLMAP through pycolmap on the latent frames: SIFT, sequential matching, incremental mapping.
+
+Runs on the CPU. One camera is shared by every latent (``CameraMode.SINGLE``): PINHOLE by
+default, or OPENCV (k1, k2, p1, p2) when the lens distorts; the writer then undistorts the
+latents, blurry frames and event maps with the estimated parameters. Latent names sort in time
+order (``NNNN_J.png``), which is the order COLMAP's sequential matcher pairs them in.
+
+COLMAP's poses are world-to-camera in OpenCV axes (x right, y down, z forward); the result
+holds camera-to-world in OpenGL axes (x right, y up, z back), the layout's convention, with
+the sparse points in the same world frame. Only the largest reconstruction is kept.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Dict, List, Literal, Optional, Sequence, Tuple
+
+import numpy as np
+
+from edygs_ns.preprocess.steps import progress_bar
+
+#: glog level of COLMAP's own log lines shown (0 info, 1 warning, 2 error).
+COLMAP_LOG_LEVEL = 2
+#: Flip of the camera y and z axes between OpenCV and OpenGL conventions.
+OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
+#: OPENCV distortion parameters, in COLMAP's order after fx, fy, cx, cy.
+OPENCV_DISTORTION = ("k1", "k2", "p1", "p2")
+#: File names of the saved result inside the COLMAP work folder.
+RESULT_ARRAYS = "result.npz"
+RESULT_JSON = "result.json"
+#: Images registered by the mapper's initial pair.
+INITIAL_PAIR = 2
+#: Reconstruction id COLMAP gives the first camera in a fresh database.
+FIRST_CAMERA_ID = 1
+
+
+@dataclass
+class ColmapConfig:
+    """COLMAP settings (pycolmap, CPU)."""
+
+    camera_model: Literal["PINHOLE", "SIMPLE_PINHOLE", "OPENCV"] = "PINHOLE"
+    """One shared camera: PINHOLE (fx, fy, cx, cy), SIMPLE_PINHOLE (one focal length), or OPENCV
+    (adds k1, k2, p1, p2) when the lens distorts; OPENCV makes edygs-process undistort the
+    latents, blurry frames and event maps with the estimated parameters."""
+    matching_overlap: int = 10
+    """Sequential matching: each latent is matched with this many following latents."""
+    quadratic_overlap: bool = True
+    """Also match latents at quadratically growing distances (1, 2, 4, 8, ...) for long-range links."""
+    max_num_features: int = 8192
+    """Most SIFT features per latent."""
+    num_threads: int = -1
+    """CPU threads (-1: all)."""
+    random_seed: int = 0
+    """Seed of COLMAP's RANSAC and mapper, for repeatable reconstructions."""
+    extraction_batch: int = 16
+    """Latents per feature-extraction call (granularity of the progress bar)."""
+
+
+@dataclass
+class CameraEstimate:
+    """The shared camera COLMAP estimated (pixels; OpenCV distortion, zeros for PINHOLE)."""
+
+    model: str
+    width: int
+    height: int
+    fl_x: float
+    fl_y: float
+    cx: float
+    cy: float
+    k1: float = 0.0
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+
+    def matrix(self) -> np.ndarray:
+        """[3, 3] calibration matrix K."""
+        return np.array([[self.fl_x, 0.0, self.cx], [0.0, self.fl_y, self.cy], [0.0, 0.0, 1.0]])
+
+    def distortion(self) -> np.ndarray:
+        """[4] OpenCV distortion coefficients (k1, k2, p1, p2)."""
+        return np.array([self.k1, self.k2, self.p1, self.p2])
+
+    @property
+    def distorted(self) -> bool:
+        return bool(np.any(self.distortion() != 0.0))
+
+
+@dataclass
+class ColmapResult:
+    """What COLMAP found for N latent images.
+
+    Attributes:
+        names: [N] image names in time order.
+        c2w: [N, 4, 4] float64 camera-to-world (OpenGL axes), NaN for unregistered images.
+        registered: [N] bool.
+        camera: the shared camera, None when nothing registered.
+        points_xyz: [P, 3] float64 sparse points (world frame of c2w).
+        points_rgb: [P, 3] uint8 their colours.
+        mean_reprojection_error: mean reprojection error in pixels (NaN without points).
+        num_reconstructions: models COLMAP built (only the largest is kept).
+    """
+
+    names: List[str]
+    c2w: np.ndarray
+    registered: np.ndarray
+    camera: Optional[CameraEstimate]
+    points_xyz: np.ndarray
+    points_rgb: np.ndarray
+    mean_reprojection_error: float
+    num_reconstructions: int
+
+    @property
+    def num_registered(self) -> int:
+        return int(self.registered.sum())
+
+    @property
+    def unregistered_names(self) -> List[str]:
+        return [n for n, ok in zip(self.names, self.registered) if not ok]
+
+    def save(self, folder: Path) -> None:
+        """Write the result to ``folder`` (result.npz + result.json)."""
+        folder.mkdir(parents=True, exist_ok=True)
+        np.savez(folder / RESULT_ARRAYS, c2w=self.c2w, registered=self.registered,
+                 points_xyz=self.points_xyz, points_rgb=self.points_rgb)
+        meta = {
+            "names": self.names,
+            "camera": asdict(self.camera) if self.camera is not None else None,
+            "mean_reprojection_error": self.mean_reprojection_error,
+            "num_reconstructions": self.num_reconstructions,
+        }
+        (folder / RESULT_JSON).write_text(json.dumps(meta, indent=2))
+
+    @classmethod
+    def load(cls, folder: Path) -> "ColmapResult":
+        """Read a result written by :meth:`save`."""
+        meta = json.loads((folder / RESULT_JSON).read_text())
+        with np.load(folder / RESULT_ARRAYS) as arrays:
+            return cls(
+                names=list(meta["names"]),
+                c2w=arrays["c2w"],
+                registered=arrays["registered"].astype(bool),
+                camera=CameraEstimate(**meta["camera"]) if meta["camera"] is not None else None,
+                points_xyz=arrays["points_xyz"],
+                points_rgb=arrays["points_rgb"],
+                mean_reprojection_error=float(meta["mean_reprojection_error"]),
+                num_reconstructions=int(meta["num_reconstructions"]),
+            )
+
+
+def colmap_w2c_to_c2w_opengl(w2c_3x4: np.ndarray) -> np.ndarray:
+    """COLMAP world-to-camera [3, 4] (OpenCV axes) -> camera-to-world [4, 4] (OpenGL axes)."""
+    w2c = np.eye(4)
+    w2c[:3, :4] = w2c_3x4
+    return np.linalg.inv(w2c) @ OPENCV_TO_OPENGL
+
+
+def c2w_opengl_to_colmap_w2c(c2w: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`colmap_w2c_to_c2w_opengl`: [4, 4] c2w (OpenGL) -> [3, 4] w2c (OpenCV)."""
+    return np.linalg.inv(np.asarray(c2w, dtype=np.float64) @ OPENCV_TO_OPENGL)[:3, :4]
+
+
+def _camera_estimate(camera: "object") -> CameraEstimate:
+    params = np.asarray(camera.params, dtype=np.float64)
+    extra = dict(zip(OPENCV_DISTORTION, params[list(camera.extra_params_idxs())].tolist()))
+    return CameraEstimate(
+        model=str(camera.model_name),
+        width=int(camera.width),
+        height=int(camera.height),
+        fl_x=float(camera.focal_length_x),
+        fl_y=float(camera.focal_length_y),
+        cx=float(camera.principal_point_x),
+        cy=float(camera.principal_point_y),
+        **extra,
+    )
+
+
+def _extract(database: Path, image_dir: Path, names: Sequence[str], config: ColmapConfig) -> None:
+    import pycolmap
+
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = config.camera_model
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.use_gpu = False
+    extraction.num_threads = config.num_threads
+    extraction.sift.max_num_features = config.max_num_features
+    batch = max(1, config.extraction_batch)
+    with progress_bar("COLMAP: SIFT features", len(names)) as advance:
+        for start in range(0, len(names), batch):
+            if start > 0:
+                reader.existing_camera_id = FIRST_CAMERA_ID  # later batches share the first camera
+            pycolmap.extract_features(
+                database, image_dir, image_names=list(names[start:start + batch]),
+                camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                extraction_options=extraction, device=pycolmap.Device.cpu,
+            )
+            advance(len(names[start:start + batch]))
+
+
+def _match(database: Path, config: ColmapConfig) -> None:
+    import pycolmap
+
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.use_gpu = False
+    matching.num_threads = config.num_threads
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.overlap = config.matching_overlap
+    pairing.quadratic_overlap = config.quadratic_overlap
+    with progress_bar("COLMAP: sequential matching", None):
+        pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
+
+
+def _map(database: Path, image_dir: Path, sparse_dir: Path, n_images: int, config: ColmapConfig) -> Dict[int, "object"]:
+    import pycolmap
+
+    options = pycolmap.IncrementalPipelineOptions()
+    options.random_seed = config.random_seed
+    options.num_threads = config.num_threads
+    options.extract_colors = True
+    options.ba_refine_principal_point = False
+    sparse_dir.mkdir(parents=True, exist_ok=True)
+    with progress_bar("COLMAP: incremental mapping (images registered)", n_images) as advance:
+        return pycolmap.incremental_mapping(
+            database, image_dir, sparse_dir, options,
+            initial_image_pair_callback=lambda: advance(INITIAL_PAIR), next_image_callback=advance,
+        )
+
+
+def run_colmap(image_dir: Path, names: Sequence[str], work_dir: Path, config: ColmapConfig) -> ColmapResult:
+    """Reconstruct the latents with COLMAP and convert the largest model to the layout's frame.
+
+    Args:
+        image_dir: folder holding the images.
+        names: N image names (file names in ``image_dir``) in time order.
+        work_dir: scratch folder for the database and models (replaced).
+        config: COLMAP settings.
+
+    Returns:
+        The result; images COLMAP did not register have NaN poses and registered=False.
+    """
+    import pycolmap
+
+    pycolmap.logging.minloglevel = COLMAP_LOG_LEVEL
+    if work_dir.exists():
+        shutil.rmtree(work_dir)
+    work_dir.mkdir(parents=True)
+    database = work_dir / "database.db"
+    _extract(database, image_dir, names, config)
+    _match(database, config)
+    models = _map(database, image_dir, work_dir / "sparse", len(names), config)
+
+    n = len(names)
+    c2w = np.full((n, 4, 4), np.nan)
+    registered = np.zeros(n, dtype=bool)
+    empty = ColmapResult(list(names), c2w, registered, None, np.zeros((0, 3)), np.zeros((0, 3), np.uint8), float("nan"), len(models))
+    if not models:
+        return empty
+    model = max(models.values(), key=lambda r: r.num_reg_images())
+    index = {name: i for i, name in enumerate(names)}
+    for image in model.images.values():
+        if image.name in index and image.has_pose:
+            i = index[image.name]
+            c2w[i] = colmap_w2c_to_c2w_opengl(np.asarray(image.cam_from_world().matrix()))
+            registered[i] = True
+    camera = _camera_estimate(next(iter(model.cameras.values())))
+    points = list(model.points3D.values())
+    xyz = np.array([p.xyz for p in points], dtype=np.float64).reshape(-1, 3)
+    rgb = np.array([p.color for p in points], dtype=np.uint8).reshape(-1, 3)
+    return ColmapResult(
+        names=list(names),
+        c2w=c2w,
+        registered=registered,
+        camera=camera,
+        points_xyz=xyz,
+        points_rgb=rgb,
+        mean_reprojection_error=float(model.compute_mean_reprojection_error()),
+        num_reconstructions=len(models),
+    )
+
+
+def registration_message(result: ColmapResult, min_fraction: float, shown: int) -> str:
+    """The failure message when too few latents registered: how many, which, what to try."""
+    total = len(result.names)
+    missing = result.unregistered_names
+    listed = ", ".join(missing[:shown]) + (f", ... ({len(missing) - shown} more)" if len(missing) > shown else "")
+    return (
+        f"COLMAP registered only {result.num_registered} of {total} latent frames "
+        f"({100.0 * result.num_registered / max(total, 1):.1f}%, the minimum is {100.0 * min_fraction:.0f}%). "
+        f"Not registered: {listed or 'none'}. No transforms.json was written. Try: a capture with more texture; "
+        "a smaller --frame-stride (more overlap between frames); a lower --k (fewer, cleaner latents); "
+        "a larger --colmap.matching-overlap; --colmap.camera-model OPENCV if the lens distorts; "
+        "--poses given with known poses (--given-poses FILE); or --min-registered-fraction to accept fewer "
+        "(unregistered latents then get poses interpolated from their neighbours in time)."
+    )

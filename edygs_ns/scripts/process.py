@@ -1,0 +1,428 @@
+"""``edygs-process``: from a raw capture to a trainable scene (the paper's "Pose Initialization").
+
+Steps, each with a progress bar and a one-line summary with its time:
+
+1. ``read``: read and validate the input (frame size vs event sensor, events covering every
+   exposure), keep the selected frames (downscaled) in the work folder.
+2. ``edi``: EDI latents for every exposure (k per frame) and the event maps between them.
+3. ``poses``: COLMAP on the latents (SIFT, sequential matching, incremental mapping, one
+   shared camera), or the poses given by the input (``--poses given``: a synthetic capture's
+   gt/transforms.json, E2NeRF poses, or ``--given-poses FILE``) with random initial points
+   back-projected from random pixels of the latents (the points are random, not triangulated).
+4. ``write``: the processed layout of docs/layouts.md, transforms.json last.
+
+When COLMAP registers fewer than ``--min-registered-fraction`` of the latents the command stops
+with a message (how many, which, what to try) and writes no transforms.json. Accepted
+unregistered latents get poses interpolated in time from registered neighbours (listed in
+process_report.json). Work products live in ``<output>/.edygs_work`` and finished steps are
+recorded in ``<output>/.edygs_steps.json``: running again reuses them; ``--overwrite`` redoes all.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import Any, Dict, List, Literal, Optional, Tuple
+
+import numpy as np
+import tyro
+from nerfstudio.utils.rich_utils import CONSOLE
+from typing_extensions import Annotated
+
+from edygs_ns.events.accumulate import exposure_bins, latent_times_us
+from edygs_ns.events.edi import EdiConfig, edi_from_frame
+from edygs_ns.events.exposures import Exposure, read_exposures
+from edygs_ns.preprocess.colmap import ColmapConfig, ColmapResult, registration_message, run_colmap
+from edygs_ns.preprocess.inputs import Capture, InputConfig, Intrinsics, load_capture
+from edygs_ns.preprocess.steps import StepRunner, file_signature, fingerprint, progress_bar
+from edygs_ns.preprocess.writer import (
+    REPORT_NAME,
+    SCENE_ENTRIES,
+    SceneContent,
+    blurry_name,
+    complete_poses,
+    latent_name,
+    random_points_from_views,
+    read_rgb_png,
+    write_processed_scene,
+    write_rgb_png,
+)
+
+#: Hidden work folder inside the output (intermediate products of the steps).
+WORK_DIR_NAME = ".edygs_work"
+#: Files in the work folder.
+CAPTURE_JSON = "capture.json"
+GIVEN_POSES_NPZ = "given_poses.npz"
+POSES_NPZ = "poses.npz"
+EVENT_MAPS_WORK = "event_maps.npy"
+COLMAP_WORK = "colmap"
+#: Largest 8-bit value, for writing latents in [0, 1] as PNG.
+UINT8_MAX = 255
+#: Unregistered latent names listed in the failure message (all are in process_report.json).
+MESSAGE_MAX_NAMES = 10
+#: Fallback depth range of random initial points, as multiples of the camera path's diameter,
+#: when the input says nothing about depth.
+FALLBACK_DEPTH_RANGE_PATH_MULTIPLES = (0.5, 5.0)
+#: Fallback depth range (world units) when the cameras do not move either.
+FALLBACK_DEPTH_RANGE = (0.5, 5.0)
+#: Near depth of random points as a fraction of the far depth from scene.json's room bounds.
+ROOM_NEAR_FRACTION = 0.05
+
+
+class RegistrationError(RuntimeError):
+    """COLMAP registered too few latents; the message says how many and what to try."""
+
+
+@dataclass
+class ProcessConfig:
+    """Turn a raw capture (blurry frames + exposures + events) into a trainable EDyGS scene."""
+
+    output: Path
+    """Folder to write the processed scene into (created)."""
+    inputs: Annotated[InputConfig, tyro.conf.arg(name="")] = field(default_factory=InputConfig)
+    edi: Annotated[EdiConfig, tyro.conf.arg(name="")] = field(default_factory=EdiConfig)
+    poses: Literal["colmap", "given"] = "colmap"
+    """Where poses come from: COLMAP on the EDI latents, or the input's own poses (GT of a synthetic
+    capture, E2NeRF poses, or --given-poses FILE) with random initial points."""
+    colmap: ColmapConfig = field(default_factory=ColmapConfig)
+    min_registered_fraction: float = 0.9
+    """Stop (and write no transforms.json) when COLMAP registers fewer than this share of the latents."""
+    num_random_points: int = 20000
+    """Initial points drawn when poses are given (back-projected random pixels at random depths)."""
+    random_depth_range: Optional[Tuple[float, float]] = None
+    """(near, far) depth of the random points, world units. None: from the input (E2NeRF bounds,
+    scene.json's room), else 0.5-5x the camera path's diameter."""
+    seed: int = 0
+    """Seed of the random initial points."""
+    overwrite: bool = False
+    """Redo every step and replace what this command wrote before (other files are left alone)."""
+
+
+def work_dir(config: ProcessConfig) -> Path:
+    return Path(config.output) / WORK_DIR_NAME
+
+
+def _input_signature(config: InputConfig) -> List[Dict[str, Any]]:
+    """File signatures of every input file, computed without reading the capture."""
+    paths: List[Path] = []
+    if config.aedat4 is not None:
+        paths.append(Path(config.aedat4))
+    if config.exposures is not None:
+        csv_path = Path(config.exposures)
+        paths.append(csv_path)
+        paths += [e.file for e in read_exposures(csv_path)]
+        gt = csv_path.resolve().parent / "gt" / "transforms.json"
+        if gt.is_file():
+            paths.append(gt)
+    if config.events is not None:
+        paths.append(Path(config.events))
+    if config.e2nerf is not None:
+        paths.append(Path(config.e2nerf))
+    if config.given_poses is not None:
+        paths.append(Path(config.given_poses))
+    return [file_signature(p) for p in paths]
+
+
+def _input_roots(config: InputConfig) -> List[Path]:
+    """Input files and folders the output folder must not contain."""
+    roots = [config.aedat4, config.events, config.e2nerf, config.given_poses]
+    if config.exposures is not None:
+        roots.append(Path(config.exposures).resolve().parent)
+    return [Path(p) for p in roots if p is not None]
+
+
+class Pipeline:
+    """The four steps of edygs-process over one config; the capture is read only when needed."""
+
+    def __init__(self, config: ProcessConfig) -> None:
+        self.config = config
+        self.work = work_dir(config)
+        self.k = config.edi.k
+
+    @cached_property
+    def capture(self) -> Capture:
+        return load_capture(self.config.inputs, self.k, want_given_poses=self.config.poses == "given")
+
+    def close(self) -> None:
+        if "capture" in self.__dict__:
+            self.capture.close()
+
+    # -- work-folder products ------------------------------------------------------------------
+
+    def capture_meta(self) -> Dict[str, Any]:
+        return json.loads((self.work / CAPTURE_JSON).read_text())
+
+    def exposures(self) -> List[Exposure]:
+        return [Exposure(int(f), int(s), int(e), Path(p)) for f, s, e, p in self.capture_meta()["exposures"]]
+
+    def blurry_paths(self) -> List[Path]:
+        return [self.work / "blurry" / blurry_name(i) for i in range(len(self.exposures()))]
+
+    def latent_paths(self) -> List[List[Path]]:
+        return [[self.work / "latents" / latent_name(i, j) for j in range(self.k)] for i in range(len(self.exposures()))]
+
+    def times_us(self) -> np.ndarray:
+        return np.stack([latent_times_us(e.start_us, e.end_us, self.k) for e in self.exposures()])
+
+    # -- steps ---------------------------------------------------------------------------------
+
+    def read(self) -> str:
+        """Read and validate the input; keep the selected frames and the capture's description."""
+        capture = self.capture
+        (self.work / "blurry").mkdir(parents=True, exist_ok=True)
+        for i, frame in enumerate(capture.frames):
+            write_rgb_png(self.work / "blurry" / blurry_name(i), frame)
+        given = capture.given_poses if self.config.poses == "given" else None
+        if given is not None:
+            np.savez(self.work / GIVEN_POSES_NPZ, c2w=given.c2w)
+        meta = {
+            "form": capture.form,
+            "source": capture.source,
+            "height": capture.height,
+            "width": capture.width,
+            "exposures": [[e.frame, e.start_us, e.end_us, str(e.file)] for e in capture.exposures],
+            "frame_names": capture.frame_names,
+            "event_count_scale": capture.event_count_scale,
+            "gt_dir": str(capture.gt_dir) if capture.gt_dir is not None else None,
+            "scene_json": str(capture.scene_json) if capture.scene_json is not None else None,
+            "given_intrinsics": asdict(given.intrinsics) if given is not None else None,
+            "given_source": given.source if given is not None else None,
+            "given_depth_range": list(given.depth_range) if given is not None and given.depth_range else None,
+        }
+        (self.work / CAPTURE_JSON).write_text(json.dumps(meta, indent=2))
+        if capture.events is not None:
+            t0, t1 = capture.events.t_range()
+            events = f"{len(capture.events):,} events over {(t1 - t0) / 1e6:.2f} s"
+        else:
+            events = "pre-binned events"
+        poses = f", given poses from {given.source}" if given is not None else ""
+        return (f"{len(capture.frames)} frames {capture.width}x{capture.height} ({capture.form} input "
+                f"{capture.source}), {events}{poses}")
+
+    def edi(self) -> str:
+        """EDI latents of every exposure, and the event maps [n, k-1, H, W] they used."""
+        meta = self.capture_meta()
+        exposures = self.exposures()
+        n, h, w = len(exposures), meta["height"], meta["width"]
+        (self.work / "latents").mkdir(parents=True, exist_ok=True)
+        maps = np.lib.format.open_memmap(self.work / EVENT_MAPS_WORK, mode="w+", dtype=np.float32, shape=(n, self.k - 1, h, w))
+        capture = self.capture
+        total_events = 0.0
+        with progress_bar("EDI latents", n) as advance:
+            for i, exposure in enumerate(exposures):
+                if capture.binned_events is not None:
+                    bins = capture.binned_events[i]
+                else:
+                    bins = exposure_bins(capture.events, [exposure], self.k)[0] * meta["event_count_scale"]
+                maps[i] = bins
+                total_events += float(np.abs(bins).sum())
+                latents = edi_from_frame(read_rgb_png(self.blurry_paths()[i]), bins, self.config.edi)
+                for j in range(self.k):
+                    pixels = np.clip(np.round(latents[j] * UINT8_MAX), 0, UINT8_MAX).astype(np.uint8)
+                    write_rgb_png(self.work / "latents" / latent_name(i, j), pixels)
+                advance()
+        maps.flush()
+        del maps
+        return (f"{n * self.k} latents from {n} frames (k={self.k}, theta={self.config.edi.theta}, "
+                f"{self.config.edi.color_space}), {total_events:,.0f} events binned")
+
+    def poses(self) -> str:
+        """COLMAP on the latents, or the given poses with random initial points."""
+        names = [p.name for row in self.latent_paths() for p in row]
+        if self.config.poses == "colmap":
+            result = run_colmap(self.work / "latents", names, self.work / COLMAP_WORK, self.config.colmap)
+            result.save(self.work / COLMAP_WORK)
+            error = f"{result.mean_reprojection_error:.3f} px" if np.isfinite(result.mean_reprojection_error) else "n/a"
+            return (f"COLMAP registered {result.num_registered}/{len(names)} latents, {len(result.points_xyz):,} points, "
+                    f"mean reprojection error {error}, {result.num_reconstructions} model(s)")
+        meta = self.capture_meta()
+        with np.load(self.work / GIVEN_POSES_NPZ) as data:
+            c2w = data["c2w"].reshape(-1, 4, 4)
+        intrinsics = Intrinsics(**meta["given_intrinsics"])
+        depth_range = self._depth_range(meta, c2w)
+        rng = np.random.default_rng(self.config.seed)
+        flat_paths = [p for row in self.latent_paths() for p in row]
+        xyz, rgb = random_points_from_views(flat_paths, c2w, intrinsics, depth_range, self.config.num_random_points, rng)
+        np.savez(self.work / POSES_NPZ, xyz=xyz, rgb=rgb, depth_range=np.asarray(depth_range))
+        return (f"given poses for {len(names)} latents from {meta['given_source']}; {len(xyz):,} random points "
+                f"at depths {depth_range[0]:.3g}-{depth_range[1]:.3g}")
+
+    def _depth_range(self, meta: Dict[str, Any], c2w: np.ndarray) -> Tuple[float, float]:
+        """Depth range of random points: config, input, scene.json's room, or the camera path."""
+        if self.config.random_depth_range is not None:
+            return tuple(self.config.random_depth_range)  # type: ignore[return-value]
+        if meta["given_depth_range"] is not None:
+            return tuple(meta["given_depth_range"])  # type: ignore[return-value]
+        centres = c2w[:, :3, 3]
+        if meta["scene_json"] is not None:
+            scene = json.loads(Path(meta["scene_json"]).read_text())
+            if "room_min" in scene and "room_max" in scene:
+                corners = np.array(np.meshgrid(*zip(scene["room_min"], scene["room_max"]))).reshape(3, -1).T
+                far = float(np.max(np.linalg.norm(corners[None] - centres[:, None], axis=-1)))
+                return (ROOM_NEAR_FRACTION * far, far)
+        diameter = float(np.max(np.linalg.norm(centres[None] - centres[:, None], axis=-1)))
+        if diameter <= 0.0:
+            return FALLBACK_DEPTH_RANGE
+        return (FALLBACK_DEPTH_RANGE_PATH_MULTIPLES[0] * diameter, FALLBACK_DEPTH_RANGE_PATH_MULTIPLES[1] * diameter)
+
+    def colmap_result(self) -> Optional[ColmapResult]:
+        return ColmapResult.load(self.work / COLMAP_WORK) if self.config.poses == "colmap" else None
+
+    def check_registration(self) -> None:
+        """Raise RegistrationError (after writing a failure report) when too few latents registered."""
+        result = self.colmap_result()
+        if result is None:
+            return
+        total = len(result.names)
+        if result.num_registered >= self.config.min_registered_fraction * total and result.num_registered > 0:
+            return
+        message = registration_message(result, self.config.min_registered_fraction, MESSAGE_MAX_NAMES)
+        report = {"status": "failed", "error": message, **self.pose_report(result)}
+        _write_report(Path(self.config.output) / REPORT_NAME, report)
+        raise RegistrationError(message)
+
+    def pose_report(self, result: Optional[ColmapResult]) -> Dict[str, Any]:
+        n_latents = len(self.exposures()) * self.k
+        if result is None:
+            return {"pose_source": "given", "registered_latents": n_latents, "total_latents": n_latents,
+                    "registered_fraction": 1.0, "unregistered_latents": [], "mean_reprojection_error_px": None}
+        error = result.mean_reprojection_error
+        return {
+            "pose_source": "colmap",
+            "registered_latents": result.num_registered,
+            "total_latents": len(result.names),
+            "registered_fraction": result.num_registered / max(len(result.names), 1),
+            "unregistered_latents": result.unregistered_names,
+            "mean_reprojection_error_px": float(error) if np.isfinite(error) else None,
+            "num_reconstructions": result.num_reconstructions,
+            "camera": asdict(result.camera) if result.camera is not None else None,
+        }
+
+    def write(self) -> str:
+        """Write the processed layout (transforms.json last)."""
+        scene = Path(self.config.output)
+        for name in SCENE_ENTRIES:  # leftovers of an interrupted write step of ours
+            path = scene / name
+            if path.is_dir():
+                shutil.rmtree(path)
+            elif path.exists():
+                path.unlink()
+        meta = self.capture_meta()
+        exposures = self.exposures()
+        times = self.times_us()
+        n, k = len(exposures), self.k
+        result = self.colmap_result()
+        if result is not None:
+            c2w = complete_poses(result.c2w, result.registered, times.reshape(-1)).reshape(n, k, 4, 4)
+            cam = result.camera
+            intrinsics = Intrinsics(cam.width, cam.height, cam.fl_x, cam.fl_y, cam.cx, cam.cy)
+            distorted = cam if cam.distorted else None
+            xyz, rgb = result.points_xyz, result.points_rgb
+        else:
+            with np.load(self.work / GIVEN_POSES_NPZ) as data:
+                c2w = data["c2w"]
+            with np.load(self.work / POSES_NPZ) as data:
+                xyz, rgb = data["xyz"], data["rgb"]
+            intrinsics = Intrinsics(**meta["given_intrinsics"])
+            distorted = None
+        gt_dir = Path(meta["gt_dir"]) if meta["gt_dir"] else None
+        content = SceneContent(
+            blurry=self.blurry_paths(), latents=self.latent_paths(), event_maps=self.work / EVENT_MAPS_WORK,
+            exposures=exposures, times_us=times, c2w=c2w, intrinsics=intrinsics, distorted_camera=distorted,
+            points_xyz=xyz, points_rgb=rgb, k=k, theta=self.config.edi.theta,
+            color_space=self.config.edi.color_space, pose_source=self.config.poses,
+            gt_dir=gt_dir, gt_frame_map={e.frame: i for i, e in enumerate(exposures)},
+        )
+        written = write_processed_scene(scene, content, self.work)
+        undistorted = " (undistorted from OPENCV)" if distorted is not None else ""
+        return (f"{n * k} posed latents, {len(xyz):,} points, camera {written.width}x{written.height} "
+                f"f=({written.fl_x:.1f}, {written.fl_y:.1f}){undistorted} -> {scene}")
+
+
+def _write_report(path: Path, report: Dict[str, Any]) -> None:
+    tmp = path.with_name(path.name + ".partial")
+    tmp.write_text(json.dumps(report, indent=2))
+    os.replace(tmp, path)
+
+
+def process(config: ProcessConfig) -> Dict[str, Any]:
+    """Run (or resume) every step of edygs-process; returns the process report.
+
+    Raises:
+        RegistrationError: COLMAP registered fewer latents than min_registered_fraction.
+        FileExistsError: the output holds something else, or finished steps with other
+            settings, and --overwrite was not given.
+        FileNotFoundError / ValueError: bad inputs (the message names the file and the fault).
+    """
+    if not 0.0 <= config.min_registered_fraction <= 1.0:
+        raise ValueError(f"min_registered_fraction must lie in [0, 1], got {config.min_registered_fraction}")
+    output = Path(config.output)
+    owned = SCENE_ENTRIES + (WORK_DIR_NAME,)
+    runner = StepRunner(output, owned, config.overwrite)
+    runner.prepare(_input_roots(config.inputs))
+    pipeline = Pipeline(config)
+    started = time.perf_counter()
+    try:
+        read_fp = fingerprint("read", _input_signature(config.inputs), asdict(config.inputs), config.poses,
+                              config.edi.k if config.poses == "given" or config.inputs.e2nerf else None)
+        runner.run("read", read_fp, pipeline.read)
+        edi_fp = fingerprint("edi", read_fp, asdict(config.edi))
+        runner.run("edi", edi_fp, pipeline.edi)
+        pose_settings = asdict(config.colmap) if config.poses == "colmap" else [
+            config.num_random_points, config.random_depth_range, config.seed]
+        poses_fp = fingerprint("poses", edi_fp, config.poses, pose_settings)
+        runner.run("poses", poses_fp, pipeline.poses)
+        pipeline.check_registration()
+        runner.run("write", fingerprint("write", poses_fp), pipeline.write)
+    finally:
+        pipeline.close()
+    poses = pipeline.pose_report(pipeline.colmap_result())
+    report = {
+        "status": "ok",
+        "input": pipeline.capture_meta()["source"],
+        "input_form": pipeline.capture_meta()["form"],
+        "n_blurry": len(pipeline.exposures()),
+        "k": config.edi.k,
+        "theta": config.edi.theta,
+        "color_space": config.edi.color_space,
+        "downscale": config.inputs.downscale,
+        "event_count_scale": pipeline.capture_meta()["event_count_scale"],
+        **poses,
+        "interpolated_latents": poses["unregistered_latents"],
+        "num_points": _count_points(output),
+        "step_seconds": {o.name: round(o.seconds, 3) for o in runner.outcomes},
+        "steps_reused": [o.name for o in runner.outcomes if o.reused],
+        "wall_seconds_this_run": round(time.perf_counter() - started, 3),
+    }
+    _write_report(output / REPORT_NAME, report)
+    return report
+
+
+def _count_points(scene: Path) -> int:
+    from edygs_ns.preprocess.writer import PLY_NAME, read_ply
+
+    return int(len(read_ply(scene / PLY_NAME)[0]))
+
+
+def entrypoint() -> None:
+    """Console script ``edygs-process``."""
+    config = tyro.cli(ProcessConfig)
+    try:
+        report = process(config)
+    except (RegistrationError, FileExistsError, FileNotFoundError, ValueError) as err:
+        CONSOLE.print(f"[bold red]edygs-process failed:[/] {err}")
+        sys.exit(1)
+    CONSOLE.print(
+        f"[bold]edygs-process[/]: {report['registered_latents']}/{report['total_latents']} latents posed "
+        f"({report['pose_source']}), {report['num_points']:,} points -> {config.output}"
+    )
+
+
+if __name__ == "__main__":
+    entrypoint()
