@@ -83,12 +83,12 @@ def test_eval_returns_novel_view_with_time_and_mask(scene):
         assert camera.shape == (1,) and batch["image"].shape == (scene.height, scene.width, 3)
         assert torch.allclose(batch["image"], _pixels(scene.novel_files[idx]))
         assert float(camera.times[0, 0]) == pytest.approx(scene.novel_times[idx], abs=1e-6)
-        mask = batch["mask"]
+        mask = batch["motion_mask"]
         assert mask.shape == (scene.height, scene.width, 1) and set(mask.unique().tolist()) <= {0.0, 1.0}
         times.add(round(float(camera.times[0, 0]), 6))
     assert len(times) == 2
     assert len(dm.fixed_indices_eval_dataloader) == 2
-    assert "mask" in dm.fixed_indices_eval_dataloader[0][1]
+    assert "motion_mask" in dm.fixed_indices_eval_dataloader[0][1]
 
 
 def test_points_exposed_for_seeding(scene):

@@ -18,7 +18,7 @@ from edygs_ns.events.readers import open_event_source, read_events
 from edygs_ns.events.types import EventArray
 from edygs_ns.events.writers import write_events_h5
 from edygs_ns.eval.trajectory import ate_rmse
-from edygs_ns.preprocess.colmap import CameraEstimate, c2w_opengl_to_colmap_w2c, colmap_w2c_to_c2w_opengl
+from edygs_ns.preprocess.colmap import CameraEstimate, ColmapConfig, c2w_opengl_to_colmap_w2c, colmap_w2c_to_c2w_opengl
 from edygs_ns.preprocess.inputs import InputConfig
 from edygs_ns.preprocess.steps import STEP_RECORD_NAME
 from edygs_ns.preprocess.writer import Undistorter, complete_poses, read_ply
@@ -29,6 +29,8 @@ from edygs_ns.scripts.synth import SynthConfig, write_synthetic_scene
 TINY = dict(width=160, height=120, n_frames=6, k=3, supersample=1, sim_steps_per_exposure=8, n_subframes=5, novel_stride=3)
 K = TINY["k"]
 STEPS = ["read", "edi", "poses", "write"]
+#: Single-threaded COLMAP is repeatable (multi-threaded runs differ slightly from run to run).
+COLMAP = ColmapConfig(num_threads=1)
 TRANSFORMS_KEYS = {"w", "h", "fl_x", "fl_y", "cx", "cy", "camera_model", "k", "theta", "color_space", "event_maps",
                    "ply_file_path", "exposures", "pose_source", "frames"}
 FRAME_KEYS = {"file_path", "transform_matrix", "time", "time_us", "blurry_index", "latent_index", "blurry_file_path"}
@@ -42,7 +44,7 @@ def raw(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def _config(output: Path, raw: Path, inputs: InputConfig = None, **kwargs) -> ProcessConfig:
     inputs = inputs or InputConfig(exposures=raw / "exposures.csv", events=raw / "events.h5")
-    return ProcessConfig(output=output, inputs=inputs, edi=EdiConfig(k=K), **kwargs)
+    return ProcessConfig(output=output, inputs=inputs, edi=EdiConfig(k=K), colmap=COLMAP, **kwargs)
 
 
 def _gt_poses(raw: Path, frames: list) -> np.ndarray:
@@ -134,7 +136,7 @@ def _write_aedat4(raw: Path, path: Path) -> None:
 def test_form_a_aedat4_goes_through_colmap(raw: Path, tmp_path: Path) -> None:
     recording = tmp_path / "capture.aedat4"
     _write_aedat4(raw, recording)
-    config = ProcessConfig(output=tmp_path / "scene", inputs=InputConfig(aedat4=recording), edi=EdiConfig(k=K))
+    config = ProcessConfig(output=tmp_path / "scene", inputs=InputConfig(aedat4=recording), edi=EdiConfig(k=K), colmap=COLMAP)
     with pytest.raises(ValueError, match="carries none"):
         process(replace(config, poses="given", output=tmp_path / "given"))
     report = process(config)
@@ -251,7 +253,7 @@ def test_sensor_size_mismatch_names_both_files(raw: Path, tmp_path: Path) -> Non
     write_events_h5(tmp_path / "small.h5", wrong)
     config = ProcessConfig(output=tmp_path / "scene", inputs=InputConfig(exposures=raw / "exposures.csv",
                            events=tmp_path / "small.h5"), edi=EdiConfig(k=K))
-    with pytest.raises(ValueError, match=r"small\.h5 has a 80x60 .* 0000\.png is 160x120"):
+    with pytest.raises(ValueError, match=r"small\.h5 has a 80x60 .*frames/0000\.png is 160x120"):
         process(config)
 
 

@@ -17,7 +17,7 @@ from edygs_ns.events.exposures import read_exposures
 from edygs_ns.scripts.synth import SynthConfig, SynthWorld, build_world, entrypoint, write_synthetic_scene
 from edygs_ns.sim.scene import ObjectState, render, to_grey
 from edygs_ns.sim.simulator import SimulatorConfig
-from edygs_ns.sim.trajectory import CAMERA_TARGET, look_at
+from edygs_ns.sim.trajectory import look_at
 
 WIDTH, HEIGHT, N_FRAMES, K = 48, 36, 4, 5
 #: One 8-bit quantisation step plus float slack.
@@ -164,7 +164,8 @@ def test_summed_events_follow_log_intensity(capture: Path, world: SynthWorld) ->
 
     # Each pixel's reference stays within one threshold of its log intensity, so between two
     # latents the count misses the predicted change by less than 2 (less than 1 from t = 0,
-    # where the first render set the reference exactly).
+    # where the first render set the reference exactly); two independent residuals uniform in
+    # (-1, 1) miss by 2/3 on average, static pixels by 0.
     for (t_a, t_b), bound in (((latents[1, 1], latents[1, 2]), 2.0), ((latents[2, 0], latents[2, K - 1]), 2.0),
                               ((latents[0, 0], latents[N_FRAMES - 1, K - 1]), 1.0)):
         pred = predicted(t_a, t_b)
@@ -172,12 +173,11 @@ def test_summed_events_follow_log_intensity(capture: Path, world: SynthWorld) ->
         large = np.abs(pred) >= 2.0
         assert large.mean() > 0.02, "too little change to test"
         assert error.max() < bound + 1e-6
-        assert np.mean(error <= 1.0) > 0.9
-        assert error[large].mean() < 1.0
+        assert error.mean() < 0.75 and np.median(error[large] / np.abs(pred[large])) < 0.3
         assert np.array_equal(np.sign(summed_events(ev, t_a, t_b)[large]), np.sign(pred[large]))
 
 
-def test_poses_valid_and_camera_moves(capture: Path) -> None:
+def test_poses_valid_and_camera_moves(capture: Path, world: SynthWorld) -> None:
     poses = np.array([f["transform_matrix"] for f in gt(capture)["frames"]])
     rot = poses[:, :3, :3]
     assert np.allclose(rot @ rot.transpose(0, 2, 1), np.eye(3), atol=1e-6)
@@ -188,9 +188,11 @@ def test_poses_valid_and_camera_moves(capture: Path) -> None:
     assert np.linalg.norm(centres[1] - centres[0]) > 0.0, "camera still within an exposure"
     cos = (np.trace(rot[0].T @ rot[-1]) - 1) / 2
     assert np.degrees(np.arccos(np.clip(cos, -1, 1))) > 1.0
-    # OpenGL convention: the look-at target lies on the camera's -z axis.
-    for pose in poses:
-        in_cam = pose[:3, :3].T @ (np.asarray(CAMERA_TARGET) - pose[:3, 3])
+    # OpenGL convention: the camera's look-at point lies on its -z axis.
+    for f in gt(capture)["frames"]:
+        pose = np.asarray(f["transform_matrix"])
+        target = world.camera_path.target(f["time_us"] / 1e6)
+        in_cam = pose[:3, :3].T @ (target - pose[:3, 3])
         assert in_cam[2] < 0 and np.allclose(in_cam[:2], 0.0, atol=1e-9)
 
 
@@ -200,7 +202,7 @@ def test_novel_views_are_off_the_training_path(capture: Path) -> None:
     by_time = {f["time_us"]: f for f in meta["frames"]}
     for novel in meta["novel_frames"]:
         centre = np.asarray(novel["transform_matrix"])[:3, 3]
-        assert np.min(np.linalg.norm(train - centre, axis=1)) > 0.1
+        assert np.min(np.linalg.norm(train - centre, axis=1)) > 0.5 * SynthConfig.novel_offset
         same_time = by_time[novel["time_us"]]
         diff = np.abs(load_png(capture / "gt" / novel["file_path"]) - load_png(capture / "gt" / same_time["file_path"]))
         assert diff.mean() > 0.02

@@ -12,7 +12,7 @@ Batches (C cameras, H x W pixels)::
                "image_idx": long [2]}
     singles    cameras [1]; {"image": float32 [1, H, W, 3], "image_idx": long [1]}
                (pair_events=False, or the blurry-input baseline)
-    eval       cameras [1]; {"image": float32 [H, W, 3], "image_idx": int, "mask": float32 [H, W, 1]
+    eval       cameras [1]; {"image": float32 [H, W, 3], "image_idx": int, "motion_mask": float32 [H, W, 1]
                motion mask (1 = dynamic), only when the scene has ground-truth masks}
 
 Training cameras carry metadata["cam_idx"]: their train index (long [2, 1] for a pair, so that
@@ -189,7 +189,7 @@ class EdygsDataManager(FullImageDatamanager):
     def _with_mask(self, idx: int, data: Dict) -> Dict:
         masks = self.eval_masks
         if masks is not None:
-            data["mask"] = masks[idx].to(self.device)
+            data["motion_mask"] = masks[idx].to(self.device)
         return data
 
     def next_eval_image(self, step: int) -> Tuple[Cameras, Dict]:

@@ -63,9 +63,9 @@ class EdygsDataParserConfig(DataParserConfig):
     """Training images: the EDI latents (one camera per latent), or the blurry inputs (one camera
     per blurry frame at the exposure-centre pose and time; the blurry-input baseline)."""
     eval_mode: Literal["novel", "interval", "all"] = "novel"
-    """"novel": train on all latents, evaluate on the ground-truth novel views (falls back to
-    "interval" with a warning when the scene has none); "interval": hold out every
-    eval_interval-th blurry frame (its latents); "all": train = eval = all latents."""
+    """Evaluation split. "novel" trains on all latents and evaluates on the ground-truth novel
+    views (scenes without them fall back to "interval", with a warning); "interval" holds out the
+    latents of every eval_interval-th blurry frame; "all" trains and evaluates on all latents."""
     eval_interval: int = 8
     """Blurry frames b with b % eval_interval == 0 are held out in "interval" mode."""
     orientation_method: Literal["pca", "up", "vertical", "none"] = "up"
@@ -197,8 +197,8 @@ class EdygsDataParser(DataParser):
         return mode
 
     def _latent_split(self, record: SceneRecord, split: str, mode: str) -> np.ndarray:
-        """Indices of the latents in ``split`` for "interval" or "all"."""
-        if mode == "all":
+        """Indices of the latents in ``split``: all of them ("all", or training in "novel"), or by interval."""
+        if mode in ("all", "novel"):
             return np.arange(record.num_latents)
         interval = self.config.eval_interval
         if interval < 1:
@@ -221,11 +221,9 @@ class EdygsDataParser(DataParser):
         if not is_train and mode == "novel":
             outputs = self._novel_outputs(record)
         elif is_train and self.config.image_source == "blurry":
-            train_latents = np.arange(record.num_latents) if mode == "novel" else self._latent_split(record, split, mode)
-            outputs = self._blurry_outputs(record, train_latents)
+            outputs = self._blurry_outputs(record, self._latent_split(record, split, mode))
         else:
-            chosen = np.arange(record.num_latents) if mode == "novel" else self._latent_split(record, split, mode)
-            outputs = self._latent_outputs(record, chosen, is_train)
+            outputs = self._latent_outputs(record, self._latent_split(record, split, mode), is_train)
         if is_train:
             outputs.metadata["event_maps"] = torch.from_numpy(np.array(record.event_maps, dtype=np.float32))
         return outputs

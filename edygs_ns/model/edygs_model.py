@@ -399,8 +399,8 @@ class EdygsModel(Model):
         gt = self._as_float_image(batch["image"], self.device)[..., :3]
         pred = outputs["rgb"]
         metrics = {"psnr": float(psnr(pred, gt)), "ssim": float(ssim(pred, gt))}
-        if "mask" in batch:
-            metrics["mask_iou"] = float(mask_iou(outputs["mask"][..., 0], batch["mask"].to(self.device)[..., 0] > 0.5))
+        if "motion_mask" in batch:
+            metrics["mask_iou"] = float(mask_iou(outputs["mask"][..., 0], batch["motion_mask"].to(self.device)[..., 0] > 0.5))
         images = {"img": torch.cat([gt, pred], dim=1), "mask": outputs["mask"].repeat(1, 1, 3)}
         return metrics, images
 

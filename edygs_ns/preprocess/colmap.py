@@ -53,8 +53,14 @@ class ColmapConfig:
     """Most SIFT features per latent."""
     num_threads: int = -1
     """CPU threads (-1: all)."""
+    init_min_num_inliers: int = 50
+    """Inlier matches the mapper's initial image pair needs. COLMAP's default (100) is tuned for
+    megapixel photos; the latents of small event-camera frames carry few features."""
+    abs_pose_min_num_inliers: int = 15
+    """2D-3D inliers needed to register a further latent (COLMAP's default 30 made tiny scenes split
+    into several models)."""
     random_seed: int = 0
-    """Seed of COLMAP's RANSAC and mapper, for repeatable reconstructions."""
+    """Seed of COLMAP's RANSAC and mapper (multi-threaded runs can still differ slightly)."""
     extraction_batch: int = 16
     """Latents per feature-extraction call (granularity of the progress bar)."""
 
@@ -220,6 +226,8 @@ def _map(database: Path, image_dir: Path, sparse_dir: Path, n_images: int, confi
     options.num_threads = config.num_threads
     options.extract_colors = True
     options.ba_refine_principal_point = False
+    options.mapper.init_min_num_inliers = config.init_min_num_inliers
+    options.mapper.abs_pose_min_num_inliers = config.abs_pose_min_num_inliers
     sparse_dir.mkdir(parents=True, exist_ok=True)
     with progress_bar("COLMAP: incremental mapping (images registered)", n_images) as advance:
         return pycolmap.incremental_mapping(

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from typing import List, Optional, Tuple
 
 import torch
+import torch.nn.functional as F
 from jaxtyping import Float
 from torch import Tensor
 
@@ -50,6 +51,13 @@ PAD_LOG_OPACITY = -1e4
 MIN_ALPHA_FOR_DEPTH = 1e-10
 #: columns of the per-Gaussian table before the features: x, y, conic a, b, c, log opacity.
 N_GEOMETRY = 6
+#: offset of a pixel centre from its corner (gsplat samples at j + 0.5).
+PIXEL_CENTRE = 0.5
+#: slack on the exponent when dropping (Gaussian, tile) pairs whose alpha is below ALPHA_MIN.
+CULL_MARGIN = 1e-3
+LOG2_E = 1.0 / math.log(2.0)
+#: after the bounding-box cut, also test each (Gaussian, tile) pair against the exact ellipse.
+EXACT_TILE_TEST = True
 
 
 @dataclass
@@ -77,16 +85,59 @@ class _Block:
     tiles: Tensor  # [t] global tile ids
     ids: Tensor  # [t, K] rows of the table, padding = last row
     centres: Tensor  # [t, 2] tile centres in pixels
+    can_clamp: bool  # some Gaussian of the block has opacity above ALPHA_MAX
+
+
+def _min_exponent_over_rects(
+    centre: Tensor, conic: Tensor, lo: Tensor, hi: Tensor
+) -> Tensor:
+    """Smallest sigma = 0.5 d^T conic d of each Gaussian over an axis-aligned rectangle.
+
+    Args:
+        centre: [M, 2] Gaussian centres. conic: [M, 3] (a, b, c). lo, hi: [M, 2] rectangle corners.
+
+    Returns:
+        [M] minimum over the continuous rectangle (0 where it contains the centre).
+    """
+    a, b, c = conic.unbind(-1)
+    d_lo, d_hi = lo - centre, hi - centre  # [M, 2] offsets of the rectangle edges
+    inside = (d_lo <= 0).all(-1) & (d_hi >= 0).all(-1)
+
+    def on_edge(fixed: Tensor, free_lo: Tensor, free_hi: Tensor, k_fixed: Tensor, k_free: Tensor) -> Tensor:
+        free = torch.maximum(torch.minimum(-b * fixed / k_free, free_hi), free_lo)
+        return 0.5 * k_fixed * fixed * fixed + b * fixed * free + 0.5 * k_free * free * free
+
+    edges = torch.stack(
+        [
+            on_edge(d_lo[:, 0], d_lo[:, 1], d_hi[:, 1], a, c),
+            on_edge(d_hi[:, 0], d_lo[:, 1], d_hi[:, 1], a, c),
+            on_edge(d_lo[:, 1], d_lo[:, 0], d_hi[:, 0], c, a),
+            on_edge(d_hi[:, 1], d_lo[:, 0], d_hi[:, 0], c, a),
+        ]
+    ).amin(0)
+    return torch.where(inside, torch.zeros_like(edges), edges)
 
 
 def bin_gaussians(
-    means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int, tile_size: int = TILE_SIZE
+    means2d: Tensor,
+    radii: Tensor,
+    depths: Tensor,
+    width: int,
+    height: int,
+    tile_size: int = TILE_SIZE,
+    conics: Optional[Tensor] = None,
+    opacities: Optional[Tensor] = None,
 ) -> TileBins:
     """Bin every visible Gaussian into the tiles its radius square touches (gsplat's isect_tiles).
+
+    With ``conics`` and ``opacities`` a (Gaussian, tile) pair is dropped when the Gaussian's alpha
+    is below ALPHA_MIN at every pixel centre of the tile: such pairs change nothing (gsplat skips
+    them pixel by pixel), so the result is the same with less work.
 
     Args:
         means2d: [C, N, 2] pixel centres. radii: [C, N] int, 0 = culled. depths: [C, N].
         width, height: image size in pixels. tile_size: tile edge in pixels.
+        conics: [C, N, 3] inverse 2D covariances. opacities: [N] activated opacities.
     """
     n_cams, n = radii.shape
     tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
@@ -94,31 +145,59 @@ def bin_gaussians(
     device = radii.device
     with torch.no_grad():
         flat = torch.nonzero(radii.reshape(-1) > 0).squeeze(1)  # [V]
-        centre = means2d.detach().reshape(-1, 2)[flat]
-        rad = radii.reshape(-1)[flat].to(centre.dtype)
+        centre = means2d.detach().reshape(-1, 2).index_select(0, flat)
+        rad = radii.reshape(-1).index_select(0, flat).to(centre.dtype)
         x0 = torch.floor((centre[:, 0] - rad) / tile_size).clamp(0, tiles_x).long()
         x1 = torch.ceil((centre[:, 0] + rad) / tile_size).clamp(0, tiles_x).long()
         y0 = torch.floor((centre[:, 1] - rad) / tile_size).clamp(0, tiles_y).long()
         y1 = torch.ceil((centre[:, 1] + rad) / tile_size).clamp(0, tiles_y).long()
+        culling = conics is not None and opacities is not None
+        if culling:
+            # tiles with a pixel centre inside the bounding box of {alpha >= ALPHA_MIN}
+            level = torch.log(opacities.detach().to(centre.dtype).clamp(min=MIN_OPACITY) / ALPHA_MIN)[flat % n]
+            conic_v = conics.detach().reshape(-1, 3).index_select(0, flat)
+            det = conic_v[:, 0] * conic_v[:, 2] - conic_v[:, 1] ** 2
+            reach = 2.0 * (level + CULL_MARGIN).clamp(min=0.0) / det
+            half = torch.stack([conic_v[:, 2], conic_v[:, 0]], 1).mul(reach[:, None]).sqrt()  # [V, 2] pixels
+            first_px = torch.ceil(centre - half - PIXEL_CENTRE)
+            last_px = torch.floor(centre + half - PIXEL_CENTRE)
+            first_tile = torch.div(first_px, tile_size, rounding_mode="floor").long()
+            last_tile = torch.div(last_px, tile_size, rounding_mode="floor").long() + 1
+            x0, y0 = torch.maximum(x0, first_tile[:, 0]), torch.maximum(y0, first_tile[:, 1])
+            x1 = torch.maximum(torch.minimum(x1, last_tile[:, 0]), x0)
+            y1 = torch.maximum(torch.minimum(y1, last_tile[:, 1]), y0)
         nx = x1 - x0
         counts = nx * (y1 - y0)
         # depth rank of every visible Gaussian: exact ordering in any dtype, fits in 32 bits
         rank = torch.empty_like(flat)
-        rank[torch.argsort(depths.detach().reshape(-1)[flat])] = torch.arange(len(flat), device=device)
-        owner = torch.repeat_interleave(torch.arange(len(flat), device=device), counts)  # [M]
+        rank[torch.argsort(depths.detach().reshape(-1).index_select(0, flat))] = torch.arange(len(flat), device=device)
         first = torch.cumsum(counts, 0) - counts
-        local = torch.arange(len(owner), device=device) - first[owner]
-        tx = x0[owner] + local % nx[owner]
-        ty = y0[owner] + torch.div(local, nx[owner], rounding_mode="floor")
-        tile = torch.div(flat[owner], n, rounding_mode="floor") * n_tiles + ty * tiles_x + tx
-        keys, order = torch.sort((tile << 32) | rank[owner])
+        base = torch.div(flat, n, rounding_mode="floor") * n_tiles + y0 * tiles_x + x0  # tile of the first corner
+        owner = torch.repeat_interleave(torch.arange(len(flat), device=device), counts)  # [M]
+        per_owner = torch.stack([base, nx, first, rank, x0, y0], 1).index_select(0, owner)  # one gather
+        local = torch.arange(len(owner), device=device) - per_owner[:, 2]
+        dy = torch.div(local, per_owner[:, 1], rounding_mode="floor")
+        dx = local - dy * per_owner[:, 1]
+        tile = per_owner[:, 0] + dy * tiles_x + dx
+        if culling and EXACT_TILE_TEST:
+            geom = torch.cat([centre, conic_v, level[:, None]], 1).index_select(0, owner)
+            corner = torch.stack([per_owner[:, 4] + dx, per_owner[:, 5] + dy], -1).to(centre.dtype) * tile_size
+            corner += PIXEL_CENTRE
+            lowest = _min_exponent_over_rects(geom[:, :2], geom[:, 2:5], corner, corner + (tile_size - 1))
+            useful = torch.nonzero(lowest <= geom[:, 5] + CULL_MARGIN).squeeze(1)
+            owner, tile, per_owner = owner[useful], tile[useful], per_owner.index_select(0, useful)
+        keys, order = torch.sort((tile << 32) | per_owner[:, 3])
         tile_counts = torch.bincount(keys >> 32, minlength=n_cams * n_tiles)
         tile_starts = torch.cumsum(tile_counts, 0) - tile_counts
-    return TileBins(flat[owner[order]], tile_starts, tile_counts, tiles_x, tiles_y)
+    return TileBins(flat.index_select(0, owner.index_select(0, order)), tile_starts, tile_counts, tiles_x, tiles_y)
 
 
-def _plan_blocks(bins: TileBins, pad_row: int, tile_size: int) -> List[_Block]:
-    """Group non-empty tiles (largest first) into blocks of about BLOCK_ELEMENTS elements."""
+def _plan_blocks(bins: TileBins, pad_row: int, tile_size: int, max_opacity: Tensor) -> List[_Block]:
+    """Group non-empty tiles (largest first) into blocks of about BLOCK_ELEMENTS elements.
+
+    Args:
+        max_opacity: [C * N + 1] opacity of every table row, to flag blocks where alpha can clamp.
+    """
     pixels = tile_size * tile_size
     counts = bins.tile_counts
     order = torch.argsort(counts, descending=True)
@@ -139,14 +218,15 @@ def _plan_blocks(bins: TileBins, pad_row: int, tile_size: int) -> List[_Block]:
         ids = torch.where(inside, bins.flat_ids[pos], torch.full_like(pos, pad_row))
         in_image = tiles % n_tiles
         centres = torch.stack([in_image % bins.tiles_x, torch.div(in_image, bins.tiles_x, rounding_mode="floor")], -1)
-        blocks.append(_Block(tiles, ids, (centres * tile_size + tile_size / 2.0)))
+        can_clamp = bool(max_opacity[ids].max() > ALPHA_MAX)
+        blocks.append(_Block(tiles, ids, centres * tile_size + tile_size / 2.0, can_clamp))
         start = stop
     return blocks
 
 
 def _pixel_basis(tile_size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     """[P, 6] monomials (1, x, y, x^2, y^2, xy) of pixel centres relative to the tile centre."""
-    offs = torch.arange(tile_size, dtype=dtype, device=device) + 0.5 - tile_size / 2.0
+    offs = torch.arange(tile_size, dtype=dtype, device=device) + PIXEL_CENTRE - tile_size / 2.0
     py, px = torch.meshgrid(offs, offs, indexing="ij")
     px, py = px.reshape(-1), py.reshape(-1)
     return torch.stack([torch.ones_like(px), px, py, px * px, py * py, px * py], dim=-1)
@@ -174,18 +254,46 @@ def _exponent_coefficients(geom: Tensor, centres: Tensor) -> Tuple[Tensor, Tenso
     return coeffs, mx, my
 
 
-def _alpha_transmittance(basis: Tensor, coeffs: Tensor) -> Tuple[Tensor, Tensor]:
-    """Alpha [t, P, K] after gsplat's rules and the transmittance in front of each Gaussian."""
-    alpha = torch.matmul(basis, coeffs)  # sigma - log(o)
-    alpha.clamp_(max=MAX_EXPONENT).neg_().exp_()
-    alpha.masked_fill_(alpha < ALPHA_MIN, 0.0).clamp_(max=ALPHA_MAX)
-    keep = torch.rsub(alpha, 1.0)
-    t_after = torch.cumprod(keep, dim=-1)
-    # a pixel stops before the Gaussian that would take its transmittance to <= TRANSMITTANCE_MIN
-    stop = t_after <= TRANSMITTANCE_MIN
-    t_before = t_after.div_(keep)
-    alpha.masked_fill_(stop, 0.0)
-    return alpha, t_before
+def _block_forward(
+    basis2: Tensor, rows: Tensor, block: _Block, need_grad: bool
+) -> Tuple[Tensor, Optional[Tensor], Optional[Tensor]]:
+    """Compositing weights of one block, gsplat's rules.
+
+    Args:
+        basis2: [P, 6] pixel monomials times log2(e) (exp2 is about twice as fast as exp on CPU).
+        rows: [t, K, 6 + F] gathered table rows.
+
+    Returns:
+        weights w = alpha * T_before [t, P, K]; when need_grad also alpha / (1 - alpha) [t, P, K]
+        and, for blocks where alpha can clamp, the [t, P, K] mask of unclamped alphas.
+    """
+    coeffs, _, _ = _exponent_coefficients(rows[..., :N_GEOMETRY], block.centres)
+    alpha = torch.matmul(basis2, coeffs.neg_())  # log2(o) - log2(e) * sigma
+    F.threshold_(alpha, -MAX_EXPONENT * LOG2_E, -MAX_EXPONENT * LOG2_E)  # clamp from below
+    alpha.exp2_()
+    F.threshold_(alpha, ALPHA_MIN, 0.0)  # gsplat skips alpha < 1/255
+    unclamped = None
+    if block.can_clamp:
+        unclamped = alpha < ALPHA_MAX if need_grad else None
+        F.hardtanh_(alpha, 0.0, ALPHA_MAX)
+    n_tiles, n_pix, k = alpha.shape
+    trans = alpha.new_empty(n_tiles, n_pix, k + 1)  # [..., j] = transmittance before Gaussian j
+    trans[..., 0] = 1.0
+    torch.neg(alpha, out=trans[..., 1:]).add_(1.0)
+    torch.cumprod(trans, -1, out=trans)
+    if float(trans[..., -1].min()) <= TRANSMITTANCE_MIN:
+        # a pixel stops before the Gaussian that would take its transmittance to <= T_min
+        alpha.mul_(F.threshold(trans[..., 1:], TRANSMITTANCE_MIN, 0.0).sign_())
+    weights = alpha * trans[..., :-1]
+    if not need_grad:
+        return weights, None, None
+    one_minus = torch.neg(alpha, out=trans[..., 1:]).add_(1.0)
+    return weights, alpha.div_(one_minus), unclamped
+
+
+def _gather_rows(table: Tensor, ids: Tensor) -> Tensor:
+    """[t, K, columns] rows of the table (index_select is faster than advanced indexing on CPU)."""
+    return table.index_select(0, ids.reshape(-1)).view(*ids.shape, table.shape[1])
 
 
 class _Composite(torch.autograd.Function):
@@ -194,22 +302,22 @@ class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, table: Tensor, blocks: List[_Block], n_tiles: int, tile_size: int) -> Tensor:  # type: ignore[override]
         basis = _pixel_basis(tile_size, table.dtype, table.device)
+        basis2 = basis * LOG2_E
         n_feat = table.shape[1] - N_GEOMETRY
-        out = table.new_zeros(n_tiles, basis.shape[0], n_feat)
+        out = table.new_zeros(n_tiles, n_feat, basis.shape[0])  # channels before pixels: fast bmm
+        need_grad = bool(ctx.needs_input_grad[0])
         n_elements = sum(b.ids.numel() for b in blocks) * basis.shape[0]
-        save = ctx.needs_input_grad[0] and 2 * n_elements * table.element_size() <= SAVE_BUDGET_BYTES
-        saved: List[Tuple[Tensor, Tensor]] = []
+        save = need_grad and 2 * n_elements * table.element_size() <= SAVE_BUDGET_BYTES
+        saved: List[Tuple[Tensor, Optional[Tensor], Optional[Tensor]]] = []
         for block in blocks:
-            rows = table[block.ids]  # [t, K, 6 + F]
-            coeffs, _, _ = _exponent_coefficients(rows[..., :N_GEOMETRY], block.centres)
-            alpha, t_before = _alpha_transmittance(basis, coeffs)
-            weights = alpha * t_before
-            out[block.tiles] = torch.bmm(weights, rows[..., N_GEOMETRY:])
+            rows = _gather_rows(table, block.ids)  # [t, K, 6 + F]
+            weights, ratio, unclamped = _block_forward(basis2, rows, block, need_grad)
+            out.index_copy_(0, block.tiles, torch.bmm(rows[..., N_GEOMETRY:].transpose(1, 2), weights.transpose(1, 2)))
             if save:
-                saved.append((alpha, t_before))
+                saved.append((weights, ratio, unclamped))
         ctx.blocks, ctx.saved, ctx.tile_size = blocks, saved, tile_size
         ctx.save_for_backward(table)
-        return out
+        return out.transpose(1, 2)
 
     @staticmethod
     def backward(ctx, grad_out: Tensor):  # type: ignore[override]
@@ -218,24 +326,23 @@ class _Composite(torch.autograd.Function):
         grad_table = torch.zeros_like(table)
         grad_out = grad_out.contiguous()
         for i, block in enumerate(ctx.blocks):
-            rows = table[block.ids]
-            coeffs, mx, my = _exponent_coefficients(rows[..., :N_GEOMETRY], block.centres)
+            rows = _gather_rows(table, block.ids)
             if ctx.saved:
-                alpha, t_before = ctx.saved[i]
+                weights, ratio, unclamped = ctx.saved[i]
             else:
-                alpha, t_before = _alpha_transmittance(basis, coeffs)
-            feats = rows[..., N_GEOMETRY:]  # [t, K, F]
-            g_pix = grad_out[block.tiles]  # [t, P, F]
-            weights = alpha * t_before
-            # h_k = dL/dC . f_k; dL/dalpha_k = T_k h_k - (sum_{j>k} w_j h_j) / (1 - alpha_k)
-            h = torch.bmm(g_pix, feats.transpose(1, 2))  # [t, P, K]
-            later = torch.cumsum(weights * h, dim=-1)
-            later = later[..., -1:] - later
-            g_alpha = t_before * h - later / torch.rsub(alpha, 1.0)
-            # d alpha / d exponent = -alpha where alpha is neither clamped nor cut off
-            g_expo = g_alpha.mul_(alpha.masked_fill(alpha >= ALPHA_MAX, 0.0)).neg_()
-            g_coeffs = torch.matmul(basis.t(), g_expo)  # [t, 6, K]
-            g_feats = torch.bmm(weights.transpose(1, 2), g_pix)  # [t, K, F]
+                weights, ratio, unclamped = _block_forward(basis * LOG2_E, rows, block, True)
+            _, mx, my = _exponent_coefficients(rows[..., :N_GEOMETRY], block.centres)
+            g_pix = grad_out.index_select(0, block.tiles)  # [t, P, F]
+            # with h_k = dL/dC . f_k:  dL/dalpha_k = T_k h_k - (sum_{j>k} w_j h_j) / (1 - alpha_k),
+            # and dalpha/dexponent = alpha, so dL/dexponent = w_k h_k - ratio_k * sum_{j>k} w_j h_j
+            g = torch.bmm(g_pix, rows[..., N_GEOMETRY:].transpose(1, 2)).mul_(weights)  # [t, P, K]
+            later = torch.cumsum(g, -1)
+            later.sub_(later[..., -1:].clone()).mul_(ratio)
+            g.add_(later)
+            if unclamped is not None:
+                g.mul_(unclamped)
+            g_coeffs = torch.matmul(basis.t(), g).neg_()  # [t, 6, K], exponent = -(basis @ coeffs)
+            g_feats = torch.bmm(g_pix.transpose(1, 2), weights)  # [t, F, K]
             g0, g1, g2, g3, g4, g5 = g_coeffs.unbind(1)
             ca, cb, cc = rows[..., 2], rows[..., 3], rows[..., 4]
             g_rows = torch.cat(
@@ -251,11 +358,11 @@ class _Composite(torch.autograd.Function):
                         ],
                         dim=-1,
                     ),
-                    g_feats,
+                    g_feats.transpose(1, 2),
                 ],
                 dim=-1,
             )
-            grad_table.index_add_(0, block.ids.reshape(-1), g_rows.reshape(-1, table.shape[1]))
+            grad_table.index_put_((block.ids.reshape(-1),), g_rows.reshape(-1, table.shape[1]), accumulate=True)
         ctx.saved = None
         return grad_table, None, None, None
 
@@ -327,8 +434,9 @@ def rasterize_torch(
     pad[0, N_GEOMETRY - 1] = PAD_LOG_OPACITY
     table = torch.cat([table, pad], dim=0)
 
-    bins = bin_gaussians(means2d, proj.radii, proj.depths, width, height, tile_size)
-    blocks = _plan_blocks(bins, pad_row=n_cams * n, tile_size=tile_size)
+    bins = bin_gaussians(means2d, proj.radii, proj.depths, width, height, tile_size, proj.conics, opacities)
+    row_opacity = torch.cat([opacities.detach().repeat(n_cams), opacities.new_zeros(1)])
+    blocks = _plan_blocks(bins, pad_row=n_cams * n, tile_size=tile_size, max_opacity=row_opacity)
     tiled = _Composite.apply(table, blocks, n_cams * bins.tiles_x * bins.tiles_y, tile_size)
     image = _tiles_to_image(tiled, n_cams, bins, width, height, tile_size)
     colour, depth_sum, alpha = image[..., :n_channels], image[..., n_channels : n_channels + 1], image[..., -1:]

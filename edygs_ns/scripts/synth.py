@@ -18,6 +18,7 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 import tyro
+from nerfstudio.utils.rich_utils import CONSOLE
 from PIL import Image
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
@@ -35,7 +36,6 @@ from edygs_ns.sim.trajectory import (
     make_camera_path,
     make_object_motion,
     make_timeline,
-    offset_pose,
 )
 
 #: What write_synthetic_scene writes into its folder (and removes first when overwriting).
@@ -84,16 +84,15 @@ class SynthConfig:
     """Speed of the moving sphere, world units per second (the room is 4 units wide)."""
     object_radius: float = 0.35
     """Radius of the moving sphere, world units."""
-    camera_speed: float = 2.0
+    camera_speed: float = 2.5
     """Speed of the camera centre along its elliptic sweep, world units per second."""
     camera_sway: float = 0.6
     """Lateral half-width of the camera sweep, world units (its height is 0.4 of this)."""
     camera_dolly: float = 0.4
     """Forward travel of the camera over the whole clip, world units."""
-    novel_offset_right: float = 0.25
-    """Novel views: camera shifted this far along its own x axis (world units), re-aimed at the scene."""
-    novel_offset_up: float = 0.1
-    """Novel views: camera shifted this far along its own y axis, world units."""
+    novel_offset: float = 0.2
+    """Novel views: camera centre moved outward from its sweep (sideways / up) by about this many
+    world units, training orientation kept, so it is never on the training path."""
     novel_stride: int = 2
     """A novel view at the middle latent instant of every novel_stride-th blurry frame."""
     supersample: int = 2
@@ -107,7 +106,7 @@ def _validate(config: SynthConfig) -> None:
     positive = {
         "width": config.width, "height": config.height, "supersample": config.supersample,
         "novel_stride": config.novel_stride, "contrast_threshold": config.contrast_threshold,
-        "object_radius": config.object_radius,
+        "object_radius": config.object_radius, "novel_offset": config.novel_offset,
     }
     for name, value in positive.items():
         if value <= 0:
@@ -213,8 +212,7 @@ def _gt_entry(world: SynthWorld, sub: str, name: str, pose: np.ndarray, t_us: in
 
 
 def _progress() -> Progress:
-    from nerfstudio.utils.rich_utils import CONSOLE
-
+    """The progress bar over the clip's render instants (current blurry frame, event count)."""
     return Progress(
         TextColumn("[bold blue]{task.description}"),
         BarColumn(),
@@ -281,7 +279,7 @@ def _render_novel(world: SynthWorld, config: SynthConfig, folder: Path) -> List[
     records = []
     for p in range(0, config.n_frames, config.novel_stride):
         t = int(world.timeline.latents[p, j])
-        pose = offset_pose(world.c2w(t), config.novel_offset_right, config.novel_offset_up)
+        pose = world.camera_path.novel_c2w(t / US_PER_S, config.novel_offset)
         rgb, mask = world.render(t, pose)
         name = f"{p:04d}_{j}.png"
         _save_rgb(folder / "gt" / "novel" / name, rgb)
@@ -350,8 +348,6 @@ def write_synthetic_scene(config: SynthConfig) -> Path:
 
 def entrypoint() -> None:
     """Console script `edygs-synth`."""
-    from nerfstudio.utils.rich_utils import CONSOLE
-
     config = tyro.cli(SynthConfig)
     folder = write_synthetic_scene(config)
     summary = json.loads((folder / "scene.json").read_text())

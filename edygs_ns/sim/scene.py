@@ -46,7 +46,8 @@ TEXEL_NOISE_SIGMA = 0.02
 BASE_COLOR_RANGE = (0.25, 0.7)
 #: Saturation of the stamped feature colours of the room (1 = fully random RGB, 0 = grey).
 ROOM_SATURATION = 0.45
-#: Lambert shading: value = albedo * (AMBIENT + DIFFUSE * max(n . l, 0)).
+#: Lambert shading: value = albedo * (AMBIENT + DIFFUSE * cos), cos = max(n . l, 0) on the
+#: sphere and |n . l| on the (two-sided) quads.
 AMBIENT = 0.45
 DIFFUSE = 0.55
 #: Direction towards the light (normalised at use).

@@ -19,8 +19,12 @@ MOTION_KINDS: Tuple[str, ...] = ("linear", "circular", "bouncing")
 
 #: World up direction used by look_at.
 WORLD_UP = (0.0, 1.0, 0.0)
-#: Point the camera keeps looking at, world units.
+#: Point the camera looks at when it is at CAMERA_CENTRE, world units.
 CAMERA_TARGET = (0.0, -0.25, -2.0)
+#: Share of the camera's offset from CAMERA_CENTRE that its look-at point follows: 0 keeps the
+#: look-at point fixed (large rotations, parallax cancelled at the target), 1 keeps the
+#: orientation fixed (pure translation). In between, the view turns by a few degrees.
+CAMERA_TARGET_FOLLOW = 0.7
 #: Centre of the camera's elliptic sweep, world units.
 CAMERA_CENTRE = (0.0, 0.05, 1.5)
 #: Vertical half-height of the camera ellipse as a fraction of its lateral half-width.
@@ -76,8 +80,8 @@ def axis_angle_matrix(axis: np.ndarray, angle: float) -> np.ndarray:
 
 @dataclass(frozen=True)
 class CameraPath:
-    """A smooth camera sweep: an ellipse facing the scene, a slow dolly forward, always aimed
-    at CAMERA_TARGET (so the view rotates by a few degrees as the camera sweeps).
+    """A smooth camera sweep: an ellipse facing the scene and a slow dolly forward, aimed at a
+    look-at point that follows the camera part of the way (so the view turns by a few degrees).
 
     Attributes:
         sway: lateral half-width of the ellipse, world units.
@@ -101,19 +105,37 @@ class CameraPath:
         lift = CAMERA_LIFT_RATIO * self.sway
         return self.speed / max(np.sqrt(0.5 * (self.sway**2 + lift**2)), 1e-12)
 
-    def position(self, t_s: float) -> np.ndarray:
-        """[3] camera centre at ``t_s`` seconds."""
+    def position(self, t_s: float, widen: float = 0.0) -> np.ndarray:
+        """[3] camera centre at ``t_s`` seconds.
+
+        Args:
+            t_s: time in seconds.
+            widen: world units added to both half-axes of the ellipse (0: the training path;
+                > 0: a concentric, wider ellipse, about ``widen`` away from the training path).
+        """
         angle = self.phase + self.direction * self.angular_rate * t_s
         offset = np.array([
-            self.sway * np.sin(angle),
-            CAMERA_LIFT_RATIO * self.sway * np.cos(angle),
+            (self.sway + widen) * np.sin(angle),
+            (CAMERA_LIFT_RATIO * self.sway + widen) * np.cos(angle),
             -self.dolly * t_s / max(self.duration_s, 1e-12),
         ])
         return np.asarray(CAMERA_CENTRE, float) + offset
 
+    def target(self, t_s: float) -> np.ndarray:
+        """[3] point the camera looks at, at ``t_s`` seconds."""
+        offset = self.position(t_s) - np.asarray(CAMERA_CENTRE, float)
+        return np.asarray(CAMERA_TARGET, float) + CAMERA_TARGET_FOLLOW * offset
+
     def c2w(self, t_s: float) -> np.ndarray:
         """[4, 4] camera-to-world at ``t_s`` seconds."""
-        return look_at(self.position(t_s), CAMERA_TARGET)
+        return look_at(self.position(t_s), self.target(t_s))
+
+    def novel_c2w(self, t_s: float, offset: float) -> np.ndarray:
+        """[4, 4] a view off the training path: the training orientation at ``t_s``, the camera
+        centre moved outward (sideways and up or down) onto the ellipse widened by ``offset``."""
+        c2w = self.c2w(t_s)
+        c2w[:3, 3] = self.position(t_s, widen=offset)
+        return c2w
 
 
 def make_camera_path(rng: np.random.Generator, sway: float, speed: float, dolly: float, duration_s: float) -> CameraPath:
@@ -122,13 +144,6 @@ def make_camera_path(rng: np.random.Generator, sway: float, speed: float, dolly:
         raise ValueError(f"make_camera_path: sway ({sway}) and speed ({speed}) must be >= 0")
     return CameraPath(sway, speed, dolly, duration_s, float(rng.uniform(0.0, 2.0 * np.pi)),
                       float(rng.choice([-1.0, 1.0])))
-
-
-def offset_pose(c2w: np.ndarray, right: float, up: float) -> np.ndarray:
-    """Move a camera by ``right`` / ``up`` world units along its own axes and re-aim it at
-    CAMERA_TARGET (the novel views, off the training path)."""
-    eye = c2w[:3, 3] + right * c2w[:3, 0] + up * c2w[:3, 1]
-    return look_at(eye, CAMERA_TARGET)
 
 
 @dataclass(frozen=True)

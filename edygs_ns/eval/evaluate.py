@@ -1,0 +1,547 @@
+"""Evaluate a trained EDyGS run: input-view deblurring, novel views, motion masks and poses.
+
+`evaluate_run(config_path, output_dir)` loads a run with nerfstudio's `eval_setup`, then
+
+* **input views** (deblurring): every training latent is rendered at its *refined* pose and its
+  time and compared with the ground-truth sharp image of that instant. For a model trained on
+  the blurry frames (`edygs-blurry`) the latent instants come from the same scene read with
+  `image_source="latent"`, rendered at their dataparser poses. The EDI latents and the blurry
+  inputs are scored against the same ground truth as references (rows "EDI latent", "blurry
+  input").
+* **novel views**: the evaluation cameras (the ground-truth novel views) at their times. Their
+  ground-truth poses are first moved into the model's frame by the Sim(3) that maps the
+  ground-truth training poses onto the refined ones (edygs_ns.eval.pose_alignment explains why).
+* **poses**: ATE / RPE of the initial (dataparser) and the refined training poses against the
+  ground truth after Sim(3) Umeyama alignment, in the capture's units (the dataparser's scale is
+  undone), and ATE as a fraction of the trajectory extent.
+
+Metrics: PSNR, SSIM (edygs_ns.eval.metrics), LPIPS with AlexNet and VGG (reported unavailable,
+never zero, when the backbone weights are missing), motion-mask IoU against the ground-truth
+dynamic masks. Written files, under `output_dir`:
+
+    metrics.json, metrics.md         the table (edygs_ns.eval.report), per-view values in the JSON
+    grids/{input,novel}_NNNN.png     blurry input | EDI latent | ours | ground truth | motion mask |
+                                     GT motion mask, one file per selected view
+    grids/{input,novel}_overview.png the selected views of a split stacked in one grid
+    trajectory.png                   GT, initial and refined camera centres (aligned to GT)
+    psnr_over_time_{input,novel}.png per-view PSNR against time
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Dict, List, Literal, Mapping, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.utils.rich_utils import CONSOLE, get_progress
+from PIL import Image
+from torch import Tensor
+
+from edygs_ns.data.layouts.common import read_rgb_uint8
+from edygs_ns.eval.figures import plot_psnr_over_time, plot_trajectories, save_grid
+from edygs_ns.eval.lpips_loader import LpipsMetric, lpips_or_none
+from edygs_ns.eval.metrics import MetricSet, mask_iou, psnr, ssim
+from edygs_ns.eval.pose_alignment import (
+    Sim3,
+    align_cameras,
+    fit_gt_to_model,
+    refined_train_poses,
+    scale_translations,
+    to_homogeneous,
+    with_poses,
+)
+from edygs_ns.eval.report import DEFAULT_NOTES, markdown_table, write_metrics
+from edygs_ns.eval.trajectory import align_poses, rotation_angle, trajectory_metrics
+
+EvalSplit = Literal["input", "novel", "both"]
+
+#: Row (split) names of the metrics table.
+INPUT_SPLIT = "input views"
+NOVEL_SPLIT = "novel views"
+INITIAL_POSES_SPLIT = "poses (initial)"
+REFINED_POSES_SPLIT = "poses (refined)"
+#: Method rows of the reference images scored against the same ground truth as the input views.
+EDI_REFERENCE = "EDI latent"
+BLURRY_REFERENCE = "blurry input"
+#: Metric keys every image split carries (a number summary, or a reason string when unavailable).
+IMAGE_METRIC_KEYS: Tuple[str, ...] = ("psnr", "ssim", "lpips_alex", "lpips_vgg", "mask_iou")
+#: Metric keys every pose split carries.
+POSE_METRIC_KEYS: Tuple[str, ...] = ("ate", "ate_frac", "rpe_t", "rpe_r", "extent")
+#: LPIPS backbones reported (metric key "lpips_<net>").
+LPIPS_NETS: Tuple[str, ...] = ("alex", "vgg")
+#: Columns of the per-view grids.
+GRID_COLUMNS: Tuple[str, ...] = ("blurry input", "EDI latent", "ours", "ground truth", "motion mask", "GT motion mask")
+#: Output names inside the output folder.
+GRID_DIR = "grids"
+TRAJECTORY_PNG = "trajectory.png"
+PSNR_PNG_PATTERN = "psnr_over_time_{slug}.png"
+OVERVIEW_SUFFIX = "overview"
+#: Default number of views per split drawn as grids (evenly spaced); negative draws all.
+DEFAULT_MAX_GRIDS = 8
+#: Level at which the rendered motion mask counts as dynamic for the IoU, and GT masks are binarised.
+MASK_THRESHOLD = 0.5
+#: Largest 8-bit value.
+UINT8_MAX = 255.0
+#: Per-view values stored in metrics.json under this key of each image split.
+PER_VIEW_KEY = "per_view"
+
+
+@dataclass
+class ViewGroup:
+    """The views of one split: cameras at the poses to render and the files to compare with.
+
+    Attributes:
+        name: split name in the table (INPUT_SPLIT or NOVEL_SPLIT).
+        slug: short name used in file names ("input", "novel").
+        cameras: [V] cameras in the model's frame, with `times`.
+        gt_images: V ground-truth sharp images, or None (nothing to compare with).
+        gt_masks: V ground-truth motion masks (white = dynamic), or None.
+        edi_images: V EDI latent images (input views), or None.
+        blurry_images: V blurry input frames the views belong to (input views), or None.
+        note: how the poses were chosen, for the report.
+    """
+
+    name: str
+    slug: str
+    cameras: Cameras
+    gt_images: Optional[List[Path]]
+    gt_masks: Optional[List[Path]] = None
+    edi_images: Optional[List[Path]] = None
+    blurry_images: Optional[List[Path]] = None
+    note: str = ""
+
+    @property
+    def times(self) -> np.ndarray:
+        """[V] normalised times of the views (0 when the cameras carry none)."""
+        if self.cameras.times is None:
+            return np.zeros(self.cameras.shape[0])
+        return self.cameras.times.reshape(-1).detach().cpu().double().numpy()
+
+
+@dataclass
+class TrainPoses:
+    """Training-latent poses [N, 4, 4] float64 in the dataparser frame, and the dataparser scale."""
+
+    initial: np.ndarray
+    refined: np.ndarray
+    gt: Optional[np.ndarray]
+    scale: float
+    refined_note: str = ""
+
+
+# ----------------------------------------------------------------------------- loading
+
+
+def _read_rgb(path: Path) -> Tensor:
+    """Image file -> float [H, W, 3] in [0, 1] (alpha dropped; layouts store composited RGB)."""
+    return torch.from_numpy(read_rgb_uint8(Path(path)).astype(np.float32) / UINT8_MAX)
+
+
+def _read_mask(path: Path) -> Tensor:
+    """Mask file (white = dynamic) -> bool [H, W]."""
+    with Image.open(path) as img:
+        return torch.from_numpy(np.asarray(img.convert("L"), dtype=np.float32) / UINT8_MAX >= MASK_THRESHOLD)
+
+
+def _file_list(meta: Mapping[str, Any], key: str, count: int) -> Optional[List[Path]]:
+    files = meta.get(key)
+    if not files:
+        return None
+    if len(files) != count:
+        raise ValueError(f"dataparser metadata {key!r} lists {len(files)} files for {count} cameras")
+    return [Path(f) for f in files]
+
+
+def _is_latent_split(meta: Mapping[str, Any], count: int) -> bool:
+    latent = meta.get("latent_index")
+    return latent is not None and len(latent) == count and bool((torch.as_tensor(latent) >= 0).all())
+
+
+def _blurry_per_view(meta: Mapping[str, Any], count: int) -> Optional[List[Path]]:
+    blurry = meta.get("blurry_filenames")
+    index = meta.get("blurry_index")
+    if not blurry or index is None or len(index) != count:
+        return None
+    return [Path(blurry[int(b)]) for b in torch.as_tensor(index).tolist()]
+
+
+def input_views(pipeline: Any) -> Tuple[ViewGroup, TrainPoses]:
+    """Input-view group (training latents at refined poses) and the training poses.
+
+    Args:
+        pipeline: a loaded nerfstudio pipeline with the edygs-data dataparser.
+
+    Returns:
+        (ViewGroup of INPUT_SPLIT, TrainPoses).
+    """
+    dm = pipeline.datamanager
+    outputs = dm.train_dataparser_outputs
+    meta = outputs.metadata
+    cameras = dm.train_dataset.cameras
+    count = cameras.shape[0]
+    scale = float(outputs.dataparser_scale)
+    if _is_latent_split(meta, count):
+        refined = refined_train_poses(pipeline.model, cameras)
+        edi = [Path(f) for f in outputs.image_filenames]
+        note = "training latents at their refined poses"
+        refined_note = ""
+    else:
+        # The model was trained on other cameras (the blurry-frame baseline): score it at the latent
+        # instants of the same scene, at their dataparser poses (same transform, same frame).
+        from dataclasses import replace
+
+        latent_config = replace(dm.dataparser.config, image_source="latent")
+        outputs = latent_config.setup().get_dataparser_outputs(split="train")
+        meta = outputs.metadata
+        cameras = outputs.cameras
+        count = cameras.shape[0]
+        refined = cameras.camera_to_worlds.clone()
+        edi = [Path(f) for f in outputs.image_filenames]
+        note = "latent instants at their dataparser poses (the model was not trained on latent cameras)"
+        refined_note = "the model has no per-latent poses (trained on other cameras)"
+    gt_c2w = meta.get("gt_camera_to_worlds")
+    poses = TrainPoses(
+        initial=to_homogeneous(cameras.camera_to_worlds),
+        refined=to_homogeneous(refined),
+        gt=None if gt_c2w is None else to_homogeneous(gt_c2w),
+        scale=scale,
+        refined_note=refined_note,
+    )
+    group = ViewGroup(
+        name=INPUT_SPLIT,
+        slug="input",
+        cameras=with_poses(cameras, refined),
+        gt_images=_file_list(meta, "gt_image_filenames", count),
+        gt_masks=_file_list(meta, "gt_mask_filenames", count),
+        edi_images=edi,
+        blurry_images=_blurry_per_view(meta, count),
+        note=note,
+    )
+    return group, poses
+
+
+def novel_views(pipeline: Any, sim3: Optional[Sim3], sim3_note: str) -> ViewGroup:
+    """Novel-view group: the evaluation cameras, their ground-truth poses moved by `sim3`.
+
+    Args:
+        pipeline: a pipeline loaded with test_mode "test" (its eval dataset holds the novel views).
+        sim3: ground-truth -> model frame similarity, or None to render the poses as given.
+        sim3_note: how `sim3` was obtained (or why there is none), for the report.
+    """
+    dataset = pipeline.datamanager.eval_dataset
+    meta = dataset.metadata
+    cameras = dataset.cameras
+    count = cameras.shape[0]
+    gt_c2w = meta.get("gt_camera_to_worlds")
+    if gt_c2w is not None and sim3 is not None:
+        cameras = align_cameras(with_poses(cameras, gt_c2w), sim3)
+        note = f"ground-truth novel poses mapped into the model frame ({sim3_note})"
+    else:
+        cameras = with_poses(cameras, cameras.camera_to_worlds)
+        note = f"evaluation cameras as given by the dataparser ({sim3_note or 'no ground-truth poses'})"
+    gt = _file_list(meta, "gt_image_filenames", count) or [Path(f) for f in dataset.image_filenames]
+    return ViewGroup(name=NOVEL_SPLIT, slug="novel", cameras=cameras, gt_images=gt,
+                     gt_masks=_file_list(meta, "gt_mask_filenames", count), note=note)  # fmt: skip
+
+
+# ----------------------------------------------------------------------------- poses
+
+
+def pose_rows(poses: TrainPoses) -> Dict[str, Dict[str, Any]]:
+    """Trajectory metrics of the initial and refined poses (POSE_METRIC_KEYS), in capture units.
+
+    A pose that cannot be scored (no ground truth, too few poses) gets the reason string for
+    every key, which the report shows as "n/a".
+    """
+    rows: Dict[str, Dict[str, Any]] = {}
+    for split, est, note in ((INITIAL_POSES_SPLIT, poses.initial, ""), (REFINED_POSES_SPLIT, poses.refined, poses.refined_note)):
+        if poses.gt is None:
+            rows[split] = {key: "no ground-truth poses" for key in POSE_METRIC_KEYS}
+            continue
+        if note:
+            rows[split] = {key: note for key in POSE_METRIC_KEYS}
+            continue
+        unscale = 1.0 / poses.scale
+        try:
+            values: Dict[str, Any] = dict(trajectory_metrics(scale_translations(est, unscale), scale_translations(poses.gt, unscale)))
+        except ValueError as exc:
+            values = {key: str(exc) for key in POSE_METRIC_KEYS}
+        values["n"] = int(est.shape[0])
+        rows[split] = values
+    return rows
+
+
+def novel_alignment(poses: TrainPoses, enabled: bool) -> Tuple[Optional[Sim3], str]:
+    """The Sim(3) ground truth -> model frame fitted on the training latents, and a note."""
+    if not enabled:
+        return None, "alignment disabled"
+    if poses.gt is None:
+        return None, "no ground-truth training poses to align with"
+    sim3, reason = fit_gt_to_model(poses.gt, poses.refined)
+    if sim3 is None:
+        return None, f"no alignment: {reason}"
+    scale, rot, trans = sim3
+    angle = math.degrees(float(rotation_angle(rot)))
+    return sim3, f"Sim(3) GT -> refined training poses: scale {scale:.4f}, rotation {angle:.3f} deg, |t| {np.linalg.norm(trans):.4g}"
+
+
+def plot_pose_trajectories(path: Path, poses: TrainPoses) -> Optional[Path]:
+    """Trajectory figure: GT, initial and refined centres, each Sim(3)-aligned onto GT (capture units)."""
+    if poses.gt is None or poses.gt.shape[0] < 3:
+        return None
+    unscale = 1.0 / poses.scale
+    gt = scale_translations(poses.gt, unscale)
+    curves: Dict[str, np.ndarray] = {"GT": gt}
+    for label, est in (("initial", poses.initial), ("refined", poses.refined)):
+        try:
+            curves[label], _ = align_poses(scale_translations(est, unscale), gt)
+        except ValueError as exc:
+            CONSOLE.log(f"[yellow]trajectory plot: {label} poses not drawn: {exc}")
+    return plot_trajectories(path, curves, title="camera centres (aligned to GT, capture units)")
+
+
+# ----------------------------------------------------------------------------- images
+
+
+def _grid_indices(count: int, max_grids: int) -> List[int]:
+    if max_grids < 0 or count <= max_grids:
+        return list(range(count))
+    if max_grids == 0:
+        return []
+    return sorted(set(np.linspace(0, count - 1, max_grids).round().astype(int).tolist()))
+
+
+class _Lpips:
+    """LPIPS functions per backbone, or the reason each is unavailable."""
+
+    def __init__(self, weights: Optional[Path], device: torch.device) -> None:
+        self.fns: Dict[str, Optional[LpipsMetric]] = {}
+        self.reasons: Dict[str, str] = {}
+        for net in LPIPS_NETS:
+            fn, reason = lpips_or_none(net, weights, device)  # type: ignore[arg-type]
+            self.fns[net], self.reasons[net] = fn, reason
+
+    def score(self, pred: Tensor, gt: Tensor, into: Dict[str, float]) -> None:
+        """Add lpips_<net> of one view [H, W, 3] to `into` for every usable backbone."""
+        for net, fn in self.fns.items():
+            if fn is None:
+                continue
+            try:
+                into[f"lpips_{net}"] = float(fn(pred[None], gt[None])[0])
+            except ValueError as exc:  # image smaller than the backbone accepts
+                self.fns[net], self.reasons[net] = None, str(exc)
+
+    def fill(self, summary: Dict[str, Any]) -> None:
+        """Put the reason string under lpips_<net> for every backbone without values."""
+        for net in LPIPS_NETS:
+            if f"lpips_{net}" not in summary:
+                summary[f"lpips_{net}"] = self.reasons.get(net) or "LPIPS not computed"
+
+
+def _to_numpy(image: Tensor) -> np.ndarray:
+    return image.detach().float().cpu().clamp(0.0, 1.0).numpy()
+
+
+def _score_reference(files: Optional[List[Path]], index: int, gt: Tensor, into: MetricSet) -> Optional[Tensor]:
+    """PSNR/SSIM of a reference image (EDI latent, blurry input) against the ground truth."""
+    if files is None:
+        return None
+    image = _read_rgb(files[index])
+    if image.shape == gt.shape:
+        into.update({"psnr": psnr(image, gt), "ssim": ssim(image, gt)})
+    return image
+
+
+def evaluate_group(
+    model: Any, group: ViewGroup, lpips: _Lpips, grid_dir: Optional[Path], max_grids: int
+) -> Tuple[Dict[str, Any], Dict[str, Dict[str, Any]]]:
+    """Render every view of `group`, score it, draw grids for the selected views.
+
+    Returns:
+        (values of the split: IMAGE_METRIC_KEYS summaries or reason strings, "n", "note" and
+        per-view lists under PER_VIEW_KEY; reference rows {method: values} for the EDI latents
+        and blurry inputs, empty for novel views).
+    """
+    count = group.cameras.shape[0]
+    times = group.times
+    ours, edi_set, blurry_set = MetricSet(), MetricSet(), MetricSet()
+    per_view: Dict[str, List[Any]] = {"time": times.tolist()}
+    wanted = set(_grid_indices(count, max_grids))
+    grid_rows: List[Dict[str, np.ndarray]] = []
+    grid_views: List[int] = []
+    labels: List[str] = []
+    cameras = group.cameras.to(model.device)
+    with get_progress(f"Rendering {group.name}") as progress:
+        for i in progress.track(range(count), total=count):
+            outputs = model.get_outputs_for_camera(cameras[i : i + 1])
+            pred = outputs["rgb"].detach()
+            mask = outputs.get("mask")
+            row: Dict[str, np.ndarray] = {"ours": _to_numpy(pred)}
+            if mask is not None:
+                row["motion mask"] = _to_numpy(mask[..., 0])
+            if group.gt_images is not None:
+                gt = _read_rgb(group.gt_images[i]).to(pred.device)
+                if gt.shape != pred.shape:
+                    raise ValueError(f"{group.gt_images[i]}: ground truth is {tuple(gt.shape)}, the render is {tuple(pred.shape)}")
+                values = {"psnr": psnr(pred, gt), "ssim": ssim(pred, gt)}
+                lpips.score(pred, gt, values)
+                row["ground truth"] = _to_numpy(gt)
+                if group.gt_masks is not None:
+                    gt_mask = _read_mask(group.gt_masks[i])
+                    row["GT motion mask"] = gt_mask.float().numpy()
+                    if mask is not None:
+                        values["mask_iou"] = mask_iou(mask[..., 0].detach().cpu(), gt_mask, MASK_THRESHOLD)
+                ours.update(values)
+                edi = _score_reference(group.edi_images, i, gt.cpu(), edi_set)
+                blurry = _score_reference(group.blurry_images, i, gt.cpu(), blurry_set)
+            else:
+                edi = _read_rgb(group.edi_images[i]) if group.edi_images is not None else None
+                blurry = _read_rgb(group.blurry_images[i]) if group.blurry_images is not None else None
+            if i in wanted:
+                if edi is not None:
+                    row["EDI latent"] = edi.numpy()
+                if blurry is not None:
+                    row["blurry input"] = blurry.numpy()
+                grid_rows.append(row)
+                grid_views.append(i)
+                labels.append(f"#{i} t={times[i]:.3f}")
+    for name, values in ours.values.items():
+        per_view[name] = values
+    summary: Dict[str, Any] = dict(ours.summary())
+    missing = "no ground-truth images" if group.gt_images is None else None
+    for key in ("psnr", "ssim"):
+        summary.setdefault(key, missing)
+    if missing:
+        summary.update({f"lpips_{net}": missing for net in LPIPS_NETS})
+    lpips.fill(summary)
+    if "mask_iou" not in summary:
+        summary["mask_iou"] = missing or ("no ground-truth motion masks" if group.gt_masks is None else "the model renders no motion mask")
+    summary.update({"n": count, "note": group.note, PER_VIEW_KEY: per_view})
+    if grid_dir is not None and grid_rows:
+        columns = [c for c in GRID_COLUMNS if any(c in r for r in grid_rows)]
+        for row, label, index in zip(grid_rows, labels, grid_views):
+            save_grid(grid_dir / f"{group.slug}_{index:04d}.png", [row], columns, row_labels=[label])
+        save_grid(grid_dir / f"{group.slug}_{OVERVIEW_SUFFIX}.png", grid_rows, columns, row_labels=labels)
+    references = {label: s.summary() for label, s in ((EDI_REFERENCE, edi_set), (BLURRY_REFERENCE, blurry_set)) if s.values}
+    for label in references:
+        references[label][PER_VIEW_KEY] = {"time": times.tolist(), **(edi_set if label == EDI_REFERENCE else blurry_set).values}
+    return summary, references
+
+
+# ----------------------------------------------------------------------------- entry point
+
+
+def _load(config_path: Path) -> Tuple[Any, Any, Path, int]:
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    from edygs_ns.compat import allow_nerfstudio_checkpoints
+
+    allow_nerfstudio_checkpoints()
+    config_path = Path(config_path)
+    if not config_path.is_file():
+        raise FileNotFoundError(f"edygs-eval: run config {config_path} does not exist (pass RUN/config.yml)")
+    return eval_setup(config_path, test_mode="test")
+
+
+def evaluate_pipeline(
+    pipeline: Any,
+    output_dir: Path,
+    method: str,
+    split: EvalSplit = "both",
+    lpips_weights: Optional[Path] = None,
+    max_grids: int = DEFAULT_MAX_GRIDS,
+    align_novel: bool = True,
+    extra_notes: Sequence[str] = (),
+) -> Dict[str, Dict[str, Dict[str, Any]]]:
+    """Evaluate an already loaded pipeline (see `evaluate_run`)."""
+    if split not in ("input", "novel", "both"):
+        raise ValueError(f"split must be 'input', 'novel' or 'both', got {split!r}")
+    output_dir = Path(output_dir)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    model = pipeline.model
+    model.eval()
+    lpips = _Lpips(lpips_weights, model.device)
+    group, poses = input_views(pipeline)
+    rows: Dict[str, Dict[str, Any]] = {}
+    references: Dict[str, Dict[str, Any]] = {}
+    notes: List[str] = list(extra_notes)
+    grid_dir = output_dir / GRID_DIR
+    psnr_plots: List[Tuple[ViewGroup, Dict[str, Any], Dict[str, Dict[str, Any]]]] = []
+    if split in ("input", "both"):
+        rows[INPUT_SPLIT], references = evaluate_group(model, group, lpips, grid_dir, max_grids)
+        psnr_plots.append((group, rows[INPUT_SPLIT], references))
+        notes.append(f"{INPUT_SPLIT}: {group.note}; {EDI_REFERENCE} / {BLURRY_REFERENCE} rows score those images against the same ground truth.")
+    if split in ("novel", "both"):
+        sim3, sim3_note = novel_alignment(poses, align_novel)
+        novel = novel_views(pipeline, sim3, sim3_note)
+        rows[NOVEL_SPLIT], _ = evaluate_group(model, novel, lpips, grid_dir, max_grids)
+        psnr_plots.append((novel, rows[NOVEL_SPLIT], {}))
+        notes.append(f"{NOVEL_SPLIT}: {novel.note}.")
+    rows.update(pose_rows(poses))
+    notes.append("Poses: ATE / RPE in the capture's units (dataparser scale undone); ate_frac = ATE / largest "
+                 "distance between two ground-truth camera centres (in metrics.json).")  # fmt: skip
+    for net in LPIPS_NETS:
+        fn = lpips.fns.get(net)
+        notes.append(f"LPIPS({net}): " + (f"weights {fn.weights_file}" if fn is not None else f"unavailable: {lpips.reasons.get(net)}"))
+    metrics: Dict[str, Dict[str, Dict[str, Any]]] = {method: rows}
+    for label, values in references.items():
+        metrics[label] = {INPUT_SPLIT: values}
+    json_path, md_path = write_metrics(output_dir, metrics, notes=list(notes) + list(DEFAULT_NOTES), title=f"Evaluation of {method}")
+    plot_pose_trajectories(output_dir / TRAJECTORY_PNG, poses)
+    for view_group, values, refs in psnr_plots:
+        per_view = values[PER_VIEW_KEY]
+        if "psnr" not in per_view:
+            continue
+        lines = {method: per_view["psnr"]}
+        lines.update({label: ref[PER_VIEW_KEY]["psnr"] for label, ref in refs.items() if "psnr" in ref[PER_VIEW_KEY]})
+        plot_psnr_over_time(output_dir / PSNR_PNG_PATTERN.format(slug=view_group.slug), per_view["time"], lines,
+                            title=f"{view_group.name}: PSNR over time")  # fmt: skip
+    for line in markdown_table(metrics):
+        CONSOLE.print(line, markup=False, highlight=False, soft_wrap=True)
+    CONSOLE.log(f"edygs-eval: wrote {json_path}, {md_path} and figures under {output_dir}")
+    return metrics
+
+
+def evaluate_run(
+    config_path: Path,
+    output_dir: Path,
+    lpips_weights: Optional[Path] = None,
+    split: EvalSplit = "both",
+    max_grids: int = DEFAULT_MAX_GRIDS,
+    align_novel: bool = True,
+    method: Optional[str] = None,
+) -> Dict[str, Dict[str, Dict[str, Any]]]:
+    """Load a trained run and evaluate it; writes metrics.json, metrics.md and figures.
+
+    Args:
+        config_path: RUN/config.yml written by ns-train.
+        output_dir: folder for the outputs (created).
+        lpips_weights: torchvision backbone weights (.pth file or a folder holding them) for
+            LPIPS; see edygs_ns.eval.lpips_loader for where else they are looked for.
+        split: "input" (deblurring of the training latents), "novel" or "both".
+        max_grids: views per split drawn as grids, evenly spaced (negative: all, 0: none).
+        align_novel: move the ground-truth novel cameras into the model's frame by the Sim(3)
+            fitted between ground-truth and refined training poses.
+        method: row label of the run; default the run's method name (e.g. "edygs").
+
+    Returns:
+        The metrics as written to metrics.json: {method: {split: {metric: value}}}. The run's
+        rows are INPUT_SPLIT / NOVEL_SPLIT (IMAGE_METRIC_KEYS; each value {"mean", "std", "n"}
+        or a reason string when unavailable; per-view values under PER_VIEW_KEY) and
+        INITIAL_POSES_SPLIT / REFINED_POSES_SPLIT (POSE_METRIC_KEYS, floats or reason strings);
+        the methods EDI_REFERENCE / BLURRY_REFERENCE hold the reference images' PSNR / SSIM on
+        the input views when the scene has ground truth.
+    """
+    config, pipeline, checkpoint, step = _load(Path(config_path))
+    label = method or str(config.method_name)
+    return evaluate_pipeline(
+        pipeline, Path(output_dir), label, split=split, lpips_weights=lpips_weights, max_grids=max_grids,
+        align_novel=align_novel, extra_notes=[f"Checkpoint {checkpoint} (step {step})."],
+    )
+
+
+__all__: List[str] = ["evaluate_run", "evaluate_pipeline", "input_views", "novel_views", "pose_rows", "ViewGroup", "TrainPoses"]

@@ -1,0 +1,132 @@
+"""Camera poses for evaluation: refined training poses, and moving ground-truth cameras into the
+frame the model was trained in.
+
+Why novel views need an alignment: the model lives in the frame of its *training* poses (given,
+or from COLMAP, then refined per latent), while the ground-truth novel cameras are given in the
+ground-truth frame. With COLMAP poses the two frames differ by an unknown similarity (rotation,
+translation, scale); even with given poses, pose refinement may drift the whole trajectory a
+little. We fit the Sim(3) that maps the ground-truth camera centres of the training latents onto
+their refined centres (Umeyama, least squares) and apply it to the ground-truth novel cameras
+before rendering them. Intrinsics are unchanged. This is the standard protocol of pose-free and
+pose-refining NeRF/3DGS evaluation (BARF, Nope-NeRF, CF-3DGS).
+
+Poses are camera-to-world matrices in nerfstudio's OpenGL convention; [N, 3, 4] for `Cameras`,
+[N, 4, 4] float64 numpy arrays for the trajectory maths (edygs_ns.eval.trajectory).
+"""
+
+from __future__ import annotations
+
+from typing import Optional, Tuple, Union
+
+import numpy as np
+import torch
+from jaxtyping import Float
+from nerfstudio.cameras.cameras import Cameras
+from torch import Tensor
+
+from edygs_ns.eval.trajectory import MIN_POINTS_SIM3, apply_sim3, umeyama_sim3
+
+#: A similarity transform (scale, rotation [3, 3], translation [3]) as edygs_ns.eval.trajectory uses.
+Sim3 = Tuple[float, np.ndarray, np.ndarray]
+#: Pose matrices are [N, POSE_ROWS, 4] for Cameras and [N, 4, 4] homogeneous.
+POSE_ROWS = 3
+HOMOGENEOUS_SIZE = 4
+
+
+def to_homogeneous(c2w: Union[Tensor, np.ndarray]) -> np.ndarray:
+    """Camera-to-world poses [N, 3, 4] or [N, 4, 4] (tensor or array) -> float64 [N, 4, 4]."""
+    arr = c2w.detach().cpu().double().numpy() if isinstance(c2w, Tensor) else np.asarray(c2w, dtype=np.float64)
+    if arr.ndim != 3 or arr.shape[1:] not in ((POSE_ROWS, HOMOGENEOUS_SIZE), (HOMOGENEOUS_SIZE, HOMOGENEOUS_SIZE)):
+        raise ValueError(f"poses have shape {arr.shape}, expected [N, 3, 4] or [N, 4, 4] camera-to-world matrices")
+    out = np.zeros((arr.shape[0], HOMOGENEOUS_SIZE, HOMOGENEOUS_SIZE))
+    out[:, :POSE_ROWS, :] = arr[:, :POSE_ROWS, :]
+    out[:, POSE_ROWS, POSE_ROWS] = 1.0
+    return out
+
+
+def scale_translations(c2w: np.ndarray, factor: float) -> np.ndarray:
+    """Copy of poses [N, 4, 4] with camera centres multiplied by `factor` (rotations unchanged).
+
+    Used to undo the dataparser's scale so that trajectory errors come out in the capture's units.
+    """
+    out = np.array(c2w, dtype=np.float64, copy=True)
+    out[:, :3, 3] *= factor
+    return out
+
+
+@torch.no_grad()
+def refined_train_poses(model: torch.nn.Module, cameras: Cameras) -> Float[Tensor, "N 3 4"]:
+    """Training poses after the model's pose refinement, [N, 3, 4] on the cameras' device.
+
+    Uses the model's own `camera_to_worlds(camera)` (EdygsModel), which applies the camera
+    optimiser to cameras that carry `metadata["cam_idx"]` while the model is in training mode;
+    the model is switched to training mode only for this call and then restored. Models without
+    that method, or without pose refinement, give the cameras' poses unchanged.
+
+    Args:
+        model: the trained model (EdygsModel).
+        cameras: the N training cameras, in training-index order.
+
+    Returns:
+        [N, 3, 4] refined camera-to-world poses (OpenGL axes).
+    """
+    initial = cameras.camera_to_worlds
+    if not hasattr(model, "camera_to_worlds"):
+        return initial.clone()
+    device = next(model.parameters()).device
+    query = Cameras(
+        camera_to_worlds=initial.to(device), fx=cameras.fx.to(device), fy=cameras.fy.to(device),
+        cx=cameras.cx.to(device), cy=cameras.cy.to(device), width=cameras.width.to(device),
+        height=cameras.height.to(device), camera_type=cameras.camera_type.to(device),
+        metadata={"cam_idx": torch.arange(cameras.shape[0], device=device)},
+    )
+    was_training = model.training
+    model.train()
+    try:
+        refined = model.camera_to_worlds(query)  # type: ignore[operator]
+    finally:
+        model.train(was_training)
+    return refined[:, :POSE_ROWS, :].to(initial.device, initial.dtype)
+
+
+def fit_gt_to_model(gt_c2w: np.ndarray, model_c2w: np.ndarray) -> Tuple[Optional[Sim3], str]:
+    """Sim(3) mapping ground-truth camera centres onto the model's (refined) centres.
+
+    Args:
+        gt_c2w: [N, 4, 4] ground-truth poses of the training latents.
+        model_c2w: [N, 4, 4] the model's poses of the same latents, same order.
+
+    Returns:
+        (sim3, "") on success; (None, reason) when fewer than 3 poses are given or all
+        ground-truth centres coincide (the similarity is then undefined).
+    """
+    gt = to_homogeneous(gt_c2w)
+    est = to_homogeneous(model_c2w)
+    if gt.shape != est.shape:
+        raise ValueError(f"fit_gt_to_model: {gt.shape[0]} ground-truth poses but {est.shape[0]} model poses")
+    if gt.shape[0] < MIN_POINTS_SIM3:
+        return None, f"{gt.shape[0]} training poses, a Sim(3) needs at least {MIN_POINTS_SIM3}"
+    try:
+        return umeyama_sim3(gt[:, :3, 3], est[:, :3, 3]), ""
+    except ValueError as exc:
+        return None, str(exc)
+
+
+def with_poses(cameras: Cameras, c2w: Union[Tensor, np.ndarray]) -> Cameras:
+    """Copy of `cameras` [N] with new camera-to-world poses ([N, 3, 4] or [N, 4, 4]); intrinsics,
+    times and size kept, metadata dropped (so the model applies no pose refinement to them)."""
+    poses = torch.as_tensor(to_homogeneous(c2w)[:, :POSE_ROWS, :], dtype=cameras.camera_to_worlds.dtype)
+    if poses.shape[0] != cameras.shape[0]:
+        raise ValueError(f"with_poses: {poses.shape[0]} poses for {cameras.shape[0]} cameras")
+    return Cameras(
+        camera_to_worlds=poses.to(cameras.device), fx=cameras.fx, fy=cameras.fy, cx=cameras.cx, cy=cameras.cy,
+        width=cameras.width, height=cameras.height, camera_type=cameras.camera_type,
+        distortion_params=cameras.distortion_params, times=cameras.times,
+    )
+
+
+def align_cameras(cameras: Cameras, sim3: Optional[Sim3]) -> Cameras:
+    """Move `cameras` by `sim3` (centres c -> s R c + t, rotations -> R R_c); None keeps them."""
+    if sim3 is None:
+        return with_poses(cameras, cameras.camera_to_worlds)
+    return with_poses(cameras, apply_sim3(to_homogeneous(cameras.camera_to_worlds), sim3))

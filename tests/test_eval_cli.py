@@ -1,0 +1,169 @@
+"""edygs-eval on a tiny trained run: every metric key, LPIPS reported unavailable, figures written;
+plus the pose-alignment maths it relies on."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from scene_fixtures import write_processed_scene
+
+from edygs_ns.eval.evaluate import (
+    EDI_REFERENCE,
+    GRID_DIR,
+    IMAGE_METRIC_KEYS,
+    INITIAL_POSES_SPLIT,
+    INPUT_SPLIT,
+    NOVEL_SPLIT,
+    PER_VIEW_KEY,
+    POSE_METRIC_KEYS,
+    REFINED_POSES_SPLIT,
+    TRAJECTORY_PNG,
+    evaluate_run,
+)
+from edygs_ns.eval.lpips_loader import LPIPS_WEIGHTS_ENV
+from edygs_ns.eval.pose_alignment import align_cameras, fit_gt_to_model, refined_train_poses, to_homogeneous
+from edygs_ns.eval.report import LPIPS_UNAVAILABLE_TEXT
+from edygs_ns.eval.trajectory import apply_sim3
+
+#: Size of the tiny scene (SSIM needs >= 11 pixels a side).
+HEIGHT, WIDTH = 24, 32
+#: Training steps of the tiny run and its phase lengths (each phase is visited).
+TRAIN_STEPS = 6
+POSE_INIT_ITERS, STATIC_ITERS = 2, 2
+
+
+def train_tiny_run(root: Path, steps: int = TRAIN_STEPS) -> Path:
+    """Write a processed fixture scene under `root`, train EDyGS on the CPU for `steps` steps, and
+    return the run's config.yml (a checkpoint is saved at the last step)."""
+    from nerfstudio.configs.base_config import MachineConfig
+
+    from edygs_ns.configs.method_configs import edygs_trainer_config
+    from edygs_ns.model.deformation import DeformationConfig
+    from edygs_ns.training.schedule import PhaseSchedule
+
+    scene = write_processed_scene(root / "scene", n_blurry=3, k=3, height=HEIGHT, width=WIDTH, n_novel=2, n_points=150)
+    config = edygs_trainer_config()
+    config.pipeline.datamanager.dataparser.data = scene.root
+    config.pipeline.model.schedule = PhaseSchedule(pose_init_iters=POSE_INIT_ITERS, static_iters=STATIC_ITERS)
+    config.pipeline.model.deformation = DeformationConfig(depth=2, width=16, skip_layer=0, xyz_frequencies=2, time_frequencies=2)
+    config.pipeline.model.sh_degree = 1
+    config.machine = MachineConfig(device_type="cpu", num_devices=1)
+    config.max_num_iterations = steps
+    config.steps_per_save = steps
+    config.steps_per_eval_image = 10 * steps
+    config.steps_per_eval_all_images = 10 * steps
+    config.vis = "tensorboard"
+    config.output_dir = root / "runs"
+    config.set_timestamp()
+    config.save_config()
+    trainer = config.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    trainer.train()
+    return config.get_base_dir() / "config.yml"
+
+
+@pytest.fixture(scope="module")
+def run_config(tmp_path_factory) -> Path:
+    return train_tiny_run(tmp_path_factory.mktemp("eval_run"))
+
+
+@pytest.fixture(autouse=True)
+def no_lpips_weights(tmp_path, monkeypatch):
+    """No LPIPS backbone anywhere: empty torch hub, no environment override."""
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch_home"))
+    monkeypatch.delenv(LPIPS_WEIGHTS_ENV, raising=False)
+
+
+def test_evaluate_run_writes_every_metric_and_figure(run_config, tmp_path):
+    out = tmp_path / "eval"
+    result = evaluate_run(run_config, out, max_grids=2)
+    stored = json.loads((out / "metrics.json").read_text())
+    assert set(stored) == set(result)
+    rows = stored["edygs"]
+    assert {INPUT_SPLIT, NOVEL_SPLIT, INITIAL_POSES_SPLIT, REFINED_POSES_SPLIT} <= set(rows)
+    for split, n_views in ((INPUT_SPLIT, 9), (NOVEL_SPLIT, 2)):
+        values = rows[split]
+        assert set(IMAGE_METRIC_KEYS) <= set(values), split
+        assert values["n"] == n_views
+        assert math.isfinite(values["psnr"]["mean"]) and values["psnr"]["n"] == n_views
+        assert -1.0 <= values["ssim"]["mean"] <= 1.0
+        assert 0.0 <= values["mask_iou"]["mean"] <= 1.0
+        for net in ("alex", "vgg"):  # unavailable, with a reason naming the missing weights file
+            assert isinstance(values[f"lpips_{net}"], str) and ".pth" in values[f"lpips_{net}"]
+        assert len(values[PER_VIEW_KEY]["psnr"]) == n_views == len(values[PER_VIEW_KEY]["time"])
+    for split in (INITIAL_POSES_SPLIT, REFINED_POSES_SPLIT):
+        assert set(POSE_METRIC_KEYS) <= set(rows[split])
+        assert all(math.isfinite(rows[split][k]) for k in POSE_METRIC_KEYS)
+    # the fixture's given poses are the ground truth: the initial trajectory error vanishes
+    assert rows[INITIAL_POSES_SPLIT]["ate"] < 1e-5 and rows[INITIAL_POSES_SPLIT]["rpe_r"] < 1e-2
+    assert math.isfinite(stored[EDI_REFERENCE][INPUT_SPLIT]["psnr"]["mean"])
+    markdown = (out / "metrics.md").read_text()
+    assert LPIPS_UNAVAILABLE_TEXT in markdown and INPUT_SPLIT in markdown and NOVEL_SPLIT in markdown
+    grids = sorted(p.name for p in (out / GRID_DIR).glob("*.png"))
+    assert grids == ["input_0000.png", "input_0008.png", "input_overview.png", "novel_0000.png", "novel_0001.png", "novel_overview.png"]
+    for name in (TRAJECTORY_PNG, "psnr_over_time_input.png", "psnr_over_time_novel.png"):
+        assert (out / name).stat().st_size > 0, name
+
+
+def test_cli_novel_split_only(run_config, tmp_path, monkeypatch):
+    from edygs_ns.scripts import eval as eval_script
+
+    out = tmp_path / "cli"
+    monkeypatch.setattr(sys, "argv", ["edygs-eval", "--load-config", str(run_config), "--output", str(out), "--split", "novel"])
+    eval_script.entrypoint()
+    rows = json.loads((out / "metrics.json").read_text())["edygs"]
+    assert NOVEL_SPLIT in rows and INPUT_SPLIT not in rows
+    assert not (out / "psnr_over_time_input.png").exists()
+
+
+def test_cli_rejects_missing_config(tmp_path):
+    with pytest.raises(FileNotFoundError, match="config.yml"):
+        evaluate_run(tmp_path / "nope" / "config.yml", tmp_path / "out")
+
+
+def test_refined_poses_follow_the_camera_optimiser(run_config):
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    _, pipeline, _, _ = eval_setup(run_config, test_mode="inference")
+    model = pipeline.model
+    cameras = pipeline.datamanager.train_dataset.cameras
+    with torch.no_grad():
+        model.camera_optimizer.pose_adjustment[1, :3] += torch.tensor([0.1, -0.2, 0.05])
+    refined = refined_train_poses(model, cameras)
+    assert not model.training
+    shift = (refined[:, :, 3] - cameras.camera_to_worlds[:, :, 3]).norm(dim=-1)
+    assert shift[1] > 0.2 and float(shift[0]) < float(shift[1])
+
+
+def _random_poses(rng: np.random.Generator, n: int) -> np.ndarray:
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    for i in range(n):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        poses[i, :3, :3] = q * np.sign(np.linalg.det(q))
+        poses[i, :3, 3] = rng.normal(size=3)
+    return poses
+
+
+def test_novel_cameras_follow_the_training_frame():
+    """A model frame that is a known similarity of the GT frame: novel GT cameras land on it."""
+    from nerfstudio.cameras.cameras import Cameras
+
+    rng = np.random.default_rng(3)
+    angle = 0.7
+    rot = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
+    sim3 = (1.7, rot, np.array([0.3, -1.0, 2.0]))
+    gt_train, gt_novel = _random_poses(rng, 6), _random_poses(rng, 2)
+    fitted, reason = fit_gt_to_model(gt_train, apply_sim3(gt_train, sim3))
+    assert fitted is not None and reason == ""
+    novel = Cameras(camera_to_worlds=torch.tensor(gt_novel[:, :3], dtype=torch.float32), fx=10.0, fy=10.0, cx=8.0, cy=6.0,
+                    width=16, height=12, times=torch.tensor([[0.2], [0.8]]))  # fmt: skip
+    moved = align_cameras(novel, fitted)
+    np.testing.assert_allclose(to_homogeneous(moved.camera_to_worlds), apply_sim3(gt_novel, sim3), atol=1e-5)
+    assert torch.equal(moved.times, novel.times)
+    assert fit_gt_to_model(gt_train[:2], gt_train[:2])[0] is None
