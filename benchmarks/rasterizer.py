@@ -20,12 +20,17 @@ import time
 from dataclasses import asdict, dataclass
 from typing import Callable, Dict, List, Tuple
 
-import torch
-from rich.table import Table
+#: OpenMP threads sleep instead of spinning between parallel regions (set before torch loads).
+#: With other processes on the same cores, spinning threads made small ops ~20x slower here.
+OMP_WAIT_POLICY = "PASSIVE"
+os.environ.setdefault("OMP_WAIT_POLICY", OMP_WAIT_POLICY)
 
-from nerfstudio.utils.rich_utils import CONSOLE
+import torch  # noqa: E402
+from rich.table import Table  # noqa: E402
 
-from edygs_ns.render.torch_backend import rasterize_torch
+from nerfstudio.utils.rich_utils import CONSOLE  # noqa: E402
+
+from edygs_ns.render.torch_backend import rasterize_torch  # noqa: E402
 
 #: Gaussian counts and square image sizes of the default grid.
 DEFAULT_COUNTS = (1_000, 5_000, 20_000, 100_000)
@@ -46,12 +51,18 @@ CHANNELS = 4
 
 @dataclass
 class Record:
+    """One timing; wall-clock medians, plus process CPU time (robust to other processes' load)."""
+
     backend: str
     n_gaussians: int
     width: int
     height: int
     forward_ms: float
     forward_backward_ms: float
+    forward_cpu_ms: float
+    forward_backward_cpu_ms: float
+    threads: int
+    load_average: float
 
 
 def make_scene(n: int, size: int, complexity: float, device: torch.device, seed: int = 0) -> Dict[str, torch.Tensor]:
@@ -79,16 +90,18 @@ def make_scene(n: int, size: int, complexity: float, device: torch.device, seed:
     return {k: v.to(device) for k, v in scene.items()}
 
 
-def _time(fn: Callable[[], None], repeats: int, sync: Callable[[], None]) -> float:
+def _time(fn: Callable[[], object], repeats: int, sync: Callable[[], None]) -> Tuple[float, float]:
+    """Median wall-clock and median process CPU milliseconds of fn."""
     fn()  # warm-up
     sync()
-    samples = []
+    wall, cpu = [], []
     for _ in range(repeats):
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         fn()
         sync()
-        samples.append(1e3 * (time.perf_counter() - start))
-    return statistics.median(samples)
+        wall.append(1e3 * (time.perf_counter() - start))
+        cpu.append(1e3 * (time.process_time() - start_cpu))
+    return statistics.median(wall), statistics.median(cpu)
 
 
 def measure(backend: str, n: int, size: int, complexity: float, repeats: int) -> Record:
@@ -115,9 +128,12 @@ def measure(backend: str, n: int, size: int, complexity: float, repeats: int) ->
         for v in leaves.values():
             v.grad = None
 
-    fwd = _time(lambda: forward(), repeats, sync)
-    fwd_bwd = _time(forward_backward, repeats, sync)
-    return Record(backend, n, size, size, round(fwd, 2), round(fwd_bwd, 2))
+    fwd, fwd_cpu = _time(forward, repeats, sync)
+    fwd_bwd, fwd_bwd_cpu = _time(forward_backward, repeats, sync)
+    return Record(
+        backend, n, size, size, round(fwd, 2), round(fwd_bwd, 2), round(fwd_cpu, 2), round(fwd_bwd_cpu, 2),
+        torch.get_num_threads(), round(os.getloadavg()[0], 2),
+    )
 
 
 def parse_cases(cases: List[str]) -> List[Tuple[int, int]]:
@@ -143,18 +159,27 @@ def main() -> None:
     cases = parse_cases(args.cases) if args.cases else [(n, s) for n in DEFAULT_COUNTS for s in DEFAULT_SIZES]
     backends = ["torch"] + (["gsplat"] if torch.cuda.is_available() else [])
     load = os.getloadavg()
-    CONSOLE.log(f"threads={torch.get_num_threads()} load average (1, 5, 15 min)={load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
+    CONSOLE.log(
+        f"threads={torch.get_num_threads()} OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')} "
+        f"load average (1, 5, 15 min)={load[0]:.2f} {load[1]:.2f} {load[2]:.2f}"
+    )
     records: List[Record] = []
     for backend in backends:
         for n, size in cases:
             rec = measure(backend, n, size, args.complexity, args.repeats)
-            CONSOLE.log(f"{backend} N={n} {size}x{size}: forward {rec.forward_ms} ms, forward+backward {rec.forward_backward_ms} ms")
+            CONSOLE.log(
+                f"{backend} N={n} {size}x{size}: forward {rec.forward_ms} ms (cpu {rec.forward_cpu_ms}), "
+                f"forward+backward {rec.forward_backward_ms} ms (cpu {rec.forward_backward_cpu_ms}), load {rec.load_average}"
+            )
             records.append(rec)
     table = Table(title=f"rasteriser timings, median of {args.repeats} (ms)")
-    for col in ("backend", "N", "image", "forward", "forward+backward"):
+    for col in ("backend", "N", "image", "forward", "forward+backward", "fwd cpu", "fwd+bwd cpu", "load"):
         table.add_column(col, justify="right")
     for r in records:
-        table.add_row(r.backend, str(r.n_gaussians), f"{r.width}x{r.height}", f"{r.forward_ms:.1f}", f"{r.forward_backward_ms:.1f}")
+        table.add_row(
+            r.backend, str(r.n_gaussians), f"{r.width}x{r.height}", f"{r.forward_ms:.1f}", f"{r.forward_backward_ms:.1f}",
+            f"{r.forward_cpu_ms:.1f}", f"{r.forward_backward_cpu_ms:.1f}", f"{r.load_average:.2f}",
+        )
     CONSOLE.print(table)
     with open(args.out, "w", encoding="utf-8") as f:
         json.dump([asdict(r) for r in records], f, indent=1)

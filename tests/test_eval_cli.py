@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 from scene_fixtures import write_processed_scene
+from train_helpers import tiny_trainer_config
 
 from edygs_ns.eval.evaluate import (
     EDI_REFERENCE,
@@ -41,26 +42,8 @@ POSE_INIT_ITERS, STATIC_ITERS = 2, 2
 def train_tiny_run(root: Path, steps: int = TRAIN_STEPS) -> Path:
     """Write a processed fixture scene under `root`, train EDyGS on the CPU for `steps` steps, and
     return the run's config.yml (a checkpoint is saved at the last step)."""
-    from nerfstudio.configs.base_config import MachineConfig
-
-    from edygs_ns.configs.method_configs import edygs_trainer_config
-    from edygs_ns.model.deformation import DeformationConfig
-    from edygs_ns.training.schedule import PhaseSchedule
-
     scene = write_processed_scene(root / "scene", n_blurry=3, k=3, height=HEIGHT, width=WIDTH, n_novel=2, n_points=150)
-    config = edygs_trainer_config()
-    config.pipeline.datamanager.dataparser.data = scene.root
-    config.pipeline.model.schedule = PhaseSchedule(pose_init_iters=POSE_INIT_ITERS, static_iters=STATIC_ITERS)
-    config.pipeline.model.deformation = DeformationConfig(depth=2, width=16, skip_layer=0, xyz_frequencies=2, time_frequencies=2)
-    config.pipeline.model.sh_degree = 1
-    config.machine = MachineConfig(device_type="cpu", num_devices=1)
-    config.max_num_iterations = steps
-    config.steps_per_save = steps
-    config.steps_per_eval_image = 10 * steps
-    config.steps_per_eval_all_images = 10 * steps
-    config.vis = "tensorboard"
-    config.output_dir = root / "runs"
-    config.set_timestamp()
+    config = tiny_trainer_config(scene.root, root / "runs", iters=steps, pose_init=POSE_INIT_ITERS, static=STATIC_ITERS)
     config.save_config()
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()

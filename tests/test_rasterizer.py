@@ -11,11 +11,21 @@ from torch import Tensor
 
 from edygs_ns.render.contract import ALPHA_MAX, ALPHA_MIN, LOW_PASS_EPS, TRANSMITTANCE_MIN, select_backend
 from edygs_ns.render.projection import project_gaussians
+import edygs_ns.render.torch_backend as torch_backend
 from edygs_ns.render.torch_backend import TILE_SIZE, bin_gaussians, rasterize_torch
 
 WIDTH, HEIGHT = 21, 14  # not multiples of the tile size: exercises the cropped edge tiles
 PARAM_NAMES = ("means", "quats", "scales", "opacities", "features", "viewmats")
 WALL_OPACITY = 0.99999  # above ALPHA_MAX: the clamp happens at the wall centres
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Many tiny ops: one thread avoids OpenMP spin-waits when other processes share the cores."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 def look_at_viewmat(eye: Tensor, target: Tensor) -> Tensor:
@@ -227,7 +237,7 @@ def test_gradcheck_tiny() -> None:
         out = run_torch(s, width=11, height=10)
         return out.render, out.alpha, out.depth
 
-    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-4)
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=True)
 
 
 def test_binning_lists_every_touched_tile_in_depth_order() -> None:
@@ -324,3 +334,37 @@ def test_select_backend_picks_torch_on_cpu() -> None:
     assert select_backend(torch.device("cpu"), "torch") is rasterize_torch
     with pytest.raises(ValueError, match="unknown rasterizer"):
         select_backend(torch.device("cpu"), "opengl")
+
+
+def test_block_size_saving_and_grad_mode_do_not_change_results(monkeypatch: pytest.MonkeyPatch) -> None:
+    scene = make_scene(40, n_cams=2, seed=8)
+    weights = loss_weights((2, HEIGHT, WIDTH, 4), 9)
+
+    def run() -> Dict[str, Tensor]:
+        leaves = leafs(scene, torch.float64)
+        out = run_torch(leaves)
+        ((out.render * weights).sum() + out.depth.sum() + out.alpha.sum()).backward()
+        return {"render": out.render.detach(), **{k: leaves[k].grad for k in PARAM_NAMES}}
+
+    reference = run()
+    monkeypatch.setattr(torch_backend, "BLOCK_ELEMENTS", 256)  # one tile per block
+    monkeypatch.setattr(torch_backend, "SAVE_BUDGET_BYTES", 0)  # backward recomputes alpha
+    other = run()
+    for key, value in reference.items():
+        torch.testing.assert_close(other[key], value, rtol=1e-10, atol=1e-12, msg=key)
+    with torch.no_grad():
+        inference = run_torch(scene)
+    torch.testing.assert_close(inference.render, reference["render"], rtol=1e-12, atol=1e-12)
+
+
+def test_alpha_cut_culling_keeps_the_image(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Dropping tiles outside the alpha >= 1/255 box changes nothing but the work."""
+    scene = {k: v.float() for k, v in make_scene(60, n_cams=1, seed=10).items()}
+    proj = project_gaussians(scene["means"], scene["quats"], scene["scales"], scene["viewmats"], scene["Ks"], WIDTH, HEIGHT)
+    square = bin_gaussians(proj.means2d, proj.radii, proj.depths, WIDTH, HEIGHT)
+    tight = bin_gaussians(proj.means2d, proj.radii, proj.depths, WIDTH, HEIGHT, TILE_SIZE, proj.conics, scene["opacities"])
+    assert len(tight.flat_ids) < len(square.flat_ids)
+    culled = run_torch(scene)
+    monkeypatch.setattr(torch_backend, "bin_gaussians", lambda *args: bin_gaussians(*args[:6]))
+    full = run_torch(scene)
+    torch.testing.assert_close(culled.render, full.render, atol=1e-6, rtol=0)

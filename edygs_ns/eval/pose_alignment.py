@@ -78,7 +78,7 @@ def refined_train_poses(model: torch.nn.Module, cameras: Cameras) -> Float[Tenso
         camera_to_worlds=initial.to(device), fx=cameras.fx.to(device), fy=cameras.fy.to(device),
         cx=cameras.cx.to(device), cy=cameras.cy.to(device), width=cameras.width.to(device),
         height=cameras.height.to(device), camera_type=cameras.camera_type.to(device),
-        metadata={"cam_idx": torch.arange(cameras.shape[0], device=device)},
+        metadata={"cam_idx": torch.arange(cameras.shape[0], device=device)[:, None]},  # [N, 1]: per-camera field
     )
     was_training = model.training
     model.train()

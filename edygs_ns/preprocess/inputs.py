@@ -691,6 +691,8 @@ def load_capture(config: InputConfig, k: int, want_given_poses: bool) -> Capture
             "give exactly one input: --aedat4 FILE, or --exposures CSV --events FILE, or --e2nerf DIR "
             f"(got {', '.join('--' + f for f in forms) or 'none'})"
         )
+    if config.events is not None and forms[0] != "exposures":
+        raise ValueError(f"--events {config.events} goes with --exposures only (--{forms[0]} carries its own events)")
     if k < 2:
         raise ValueError(f"k must be at least 2 (one event bin), got {k}")
     loader = {"aedat4": load_aedat4, "exposures": load_exposure_table, "e2nerf": load_e2nerf}[forms[0]]

@@ -94,7 +94,7 @@ def project_gaussians(
     """
     rot_view = viewmats[:, :3, :3]  # [C, 3, 3]
     trans_view = viewmats[:, :3, 3]  # [C, 3]
-    means_c = torch.einsum("cij,nj->cni", rot_view, means) + trans_view[:, None, :]  # [C, N, 3]
+    means_c = torch.matmul(means, rot_view.transpose(1, 2)) + trans_view[:, None, :]  # [C, N, 3]
     x, y, z = means_c.unbind(-1)
     in_range = (z >= near_plane) & (z <= far_plane)
     z_safe = torch.where(in_range, z, torch.ones_like(z))
@@ -117,9 +117,10 @@ def project_gaussians(
 
     # camera-space square root of the covariance: M = R_view R_gauss diag(s), cov_c = M M^T
     m_world = quat_to_rotmat(quats) * scales[:, None, :]  # [N, 3, 3]
-    m_cam = torch.einsum("cij,njk->cnik", rot_view, m_world)  # [C, N, 3, 3]
-    row0 = j00[..., None] * m_cam[:, :, 0] + j02[..., None] * m_cam[:, :, 2]  # [C, N, 3]
-    row1 = j11[..., None] * m_cam[:, :, 1] + j12[..., None] * m_cam[:, :, 2]
+    n = means.shape[0]
+    m_cam = torch.matmul(rot_view, m_world.permute(1, 0, 2).reshape(3, 3 * n)).view(-1, 3, n, 3)  # [C, i, N, k]
+    row0 = j00[..., None] * m_cam[:, 0] + j02[..., None] * m_cam[:, 2]  # [C, N, 3]
+    row1 = j11[..., None] * m_cam[:, 1] + j12[..., None] * m_cam[:, 2]
     cov_a = (row0 * row0).sum(-1) + eps2d
     cov_b = (row0 * row1).sum(-1)
     cov_c = (row1 * row1).sum(-1) + eps2d

@@ -129,6 +129,11 @@ def _input_signature(config: InputConfig) -> List[Dict[str, Any]]:
     return [file_signature(p) for p in paths]
 
 
+def _input_settings(config: InputConfig) -> Dict[str, Any]:
+    """The input settings with paths resolved, so that spelling a path differently changes nothing."""
+    return {k: str(Path(v).resolve()) if isinstance(v, Path) else v for k, v in asdict(config).items()}
+
+
 def _input_roots(config: InputConfig) -> List[Path]:
     """Input files and folders the output folder must not contain."""
     roots = [config.aedat4, config.events, config.e2nerf, config.given_poses]
@@ -369,7 +374,7 @@ def process(config: ProcessConfig) -> Dict[str, Any]:
     pipeline = Pipeline(config)
     started = time.perf_counter()
     try:
-        read_fp = fingerprint("read", _input_signature(config.inputs), asdict(config.inputs), config.poses,
+        read_fp = fingerprint("read", _input_signature(config.inputs), _input_settings(config.inputs), config.poses,
                               config.edi.k if config.poses == "given" or config.inputs.e2nerf else None)
         runner.run("read", read_fp, pipeline.read)
         edi_fp = fingerprint("edi", read_fp, asdict(config.edi))

@@ -1,0 +1,137 @@
+"""Densification (3DGS clone / split / prune / opacity reset) on CPU and CUDA.
+
+We reuse gsplat 1.4.0's ``DefaultStrategy``. Reading its code path: ``step_post_backward`` ->
+``_update_state`` / ``_grow_gs`` / ``_prune_gs`` -> ``strategy.ops.duplicate / split / remove /
+reset_opa`` is pure PyTorch (``split`` samples with ``gsplat.utils.normalized_quat_to_rotmat``,
+plain torch; ``torch.cuda.empty_cache`` is a no-op without CUDA). The CUDA kernels of
+``strategy/ops.py`` (``quat_scale_to_covar_preci``, ``compute_relocation``) are used only by the
+MCMC strategy's relocation and noise injection, which we do not use, and gsplat's extension is
+compiled lazily, so importing the strategy on a CPU-only machine is safe. Nothing needed
+replacing; ``tests/test_strategy.py`` runs every step on CPU.
+
+What the subclass adds: logging through nerfstudio's CONSOLE instead of print, and the counts of
+the last refinement in ``state["last_refine"]`` for the model's metrics.
+
+Parameter conventions (gsplat's): ``params`` is a dict of per-Gaussian tensors with first
+dimension N, including "means", "scales" (log), "quats" (raw wxyz) and "opacities" (logit, [N] or
+[N, 1]); every other entry (SH features, the motion-mask logit, ...) is cloned, split and pruned
+with its Gaussian. ``optimizers`` maps each name to an optimizer with one param group.
+Adam's moments are resized with the parameters (new Gaussians start at zero).
+
+Gradient threshold units: ``info["means2d"].grad`` is dL/d(pixel) from the rasteriser. gsplat
+multiplies it by (width / 2, height / 2) and the number of cameras in the batch before taking the
+norm, i.e. it measures the gradient with respect to normalised device coordinates per camera,
+which is the quantity the original 3DGS accumulates (its rasteriser returns dL/d(NDC)). So
+``grow_grad2d`` is directly comparable with 3DGS's ``densify_grad_threshold`` (0.0002); the
+EDyGS authors' 0.0007 (from Deformable 3D Gaussians) is the same quantity with a higher bar
+(fewer new Gaussians). We keep gsplat/3DGS's 0.0002 as the default.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Dict, Tuple
+
+from gsplat.strategy import DefaultStrategy
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from edygs_ns.render.contract import RasterOutputs
+
+#: key of the last refinement's counts in the strategy state (not a tensor: ops leave it alone).
+LAST_REFINE_KEY = "last_refine"
+
+
+@dataclass
+class DensifyConfig:
+    """3DGS densification schedule and thresholds (gsplat's DefaultStrategy)."""
+
+    refine_start_iter: int = 500
+    """first step at which Gaussians are cloned, split and pruned"""
+    refine_stop_iter: int = 15_000
+    """no refinement (and no gradient statistics) from this step on"""
+    refine_every: int = 100
+    """refine every this many steps"""
+    reset_every: int = 3000
+    """reset opacities to 2 * prune_opa every this many steps"""
+    pause_refine_after_reset: int = 0
+    """skip refinement for this many steps after an opacity reset"""
+    grow_grad2d: float = 0.0002
+    """mean screen-space gradient norm (NDC units per camera, as 3DGS) above which a Gaussian grows"""
+    grow_scale3d: float = 0.01
+    """growing Gaussians whose largest scale is below this fraction of the scene scale are cloned,
+    larger ones are split"""
+    prune_opa: float = 0.005
+    """Gaussians with opacity below this are pruned"""
+    prune_scale3d: float = 0.1
+    """after the first opacity reset, Gaussians larger than this fraction of the scene scale are pruned"""
+    revised_opacity: bool = False
+    """split with the revised opacity rule of arXiv:2404.06109"""
+    absgrad: bool = False
+    """use AbsGS's absolute gradients; neither backend of the rendering contract computes them, so
+    it must stay False"""
+    verbose: bool = False
+    """log the counts of every refinement"""
+
+
+@dataclass
+class PortableStrategy(DefaultStrategy):
+    """gsplat's DefaultStrategy, logging through CONSOLE and recording refinement counts."""
+
+    log_refinements: bool = False
+
+    def _grow_gs(self, params, optimizers, state: Dict[str, Any], step: int) -> Tuple[int, int]:
+        n_dupli, n_split = super()._grow_gs(params, optimizers, state, step)
+        state[LAST_REFINE_KEY] = {"step": step, "duplicated": n_dupli, "split": n_split, "pruned": 0}
+        return n_dupli, n_split
+
+    def _prune_gs(self, params, optimizers, state: Dict[str, Any], step: int) -> int:
+        n_prune = super()._prune_gs(params, optimizers, state, step)
+        record = state.setdefault(LAST_REFINE_KEY, {"step": step, "duplicated": 0, "split": 0})
+        record["pruned"] = n_prune
+        if self.log_refinements:
+            CONSOLE.log(
+                f"step {step}: {record['duplicated']} cloned, {record['split']} split, {n_prune} pruned, "
+                f"{len(params['means'])} Gaussians"
+            )
+        return n_prune
+
+
+def make_strategy(config: DensifyConfig) -> PortableStrategy:
+    """The densification strategy for ``config`` (device-agnostic).
+
+    Raises:
+        ValueError: when ``config.absgrad`` is set (no backend provides absolute gradients).
+    """
+    if config.absgrad:
+        raise ValueError("DensifyConfig.absgrad: the rasteriser backends do not compute absolute gradients")
+    return PortableStrategy(
+        prune_opa=config.prune_opa,
+        grow_grad2d=config.grow_grad2d,
+        grow_scale3d=config.grow_scale3d,
+        prune_scale3d=config.prune_scale3d,
+        refine_start_iter=config.refine_start_iter,
+        refine_stop_iter=config.refine_stop_iter,
+        reset_every=config.reset_every,
+        refine_every=config.refine_every,
+        pause_refine_after_reset=config.pause_refine_after_reset,
+        absgrad=False,
+        revised_opacity=config.revised_opacity,
+        verbose=False,
+        log_refinements=config.verbose,
+    )
+
+
+def strategy_info(outputs: RasterOutputs, width: int, height: int) -> Dict[str, Any]:
+    """The ``info`` dict gsplat's strategy reads, from one rasteriser call (packed=False).
+
+    Keys: "means2d" [C, N, 2] (its .grad is read after backward), "radii" [C, N], "width",
+    "height", "n_cameras", "gaussian_ids" (None: not packed).
+    """
+    return {
+        "means2d": outputs.means2d,
+        "radii": outputs.radii,
+        "width": width,
+        "height": height,
+        "n_cameras": int(outputs.means2d.shape[0]),
+        "gaussian_ids": None,
+    }

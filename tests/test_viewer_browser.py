@@ -1,0 +1,197 @@
+"""Browser check of ns-viewer on an EDyGS run: the page loads, the time slider moves, and the
+output dropdown offers our outputs. Skipped when Debian's chromium is not installed (this is a
+browser check, not a core test); screenshots are written to the test's tmp folder.
+
+Chromium runs headless with its DevTools protocol on a local port; the test drives it through
+a plain websocket (websocket-client): evaluate JavaScript, press keys, capture screenshots.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+import pytest
+from test_eval_cli import train_tiny_run
+
+CHROMIUM = shutil.which("chromium")
+pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="browser check: Debian chromium is not installed")
+
+#: Flags of the headless browser (no sandbox as root, no network chatter, software WebGL).
+CHROMIUM_FLAGS = (
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+    "--no-first-run", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--window-size=1280,800",
+)  # fmt: skip
+#: Seconds to wait for the viewer server, the browser, the GUI and a render.
+SERVER_TIMEOUT_S = 120.0
+BROWSER_TIMEOUT_S = 30.0
+GUI_TIMEOUT_S = 60.0
+RENDER_SETTLE_S = 6.0
+POLL_S = 0.25
+#: Outputs the model adds beyond rgb, which the dropdown must list.
+EXPECTED_OUTPUTS = ("mask", "rgb_static", "depth")
+#: Training steps of the run shown in the viewer.
+TRAIN_STEPS = 2
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def _wait_for(check: Callable[[], Any], timeout: float, what: str) -> Any:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            value = check()
+        except (OSError, ValueError):
+            value = None
+        if value:
+            return value
+        time.sleep(POLL_S)
+    raise TimeoutError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+class DevTools:
+    """Minimal Chrome DevTools Protocol client over one page's websocket."""
+
+    def __init__(self, websocket_url: str) -> None:
+        import websocket  # websocket-client
+
+        self.ws = websocket.create_connection(websocket_url, timeout=BROWSER_TIMEOUT_S, suppress_origin=True)
+        self.next_id = 0
+
+    def call(self, method: str, **params: Any) -> dict:
+        self.next_id += 1
+        self.ws.send(json.dumps({"id": self.next_id, "method": method, "params": params}))
+        while True:
+            reply = json.loads(self.ws.recv())
+            if reply.get("id") == self.next_id:
+                if "error" in reply:
+                    raise RuntimeError(f"DevTools {method}: {reply['error']}")
+                return reply.get("result", {})
+
+    def evaluate(self, expression: str) -> Any:
+        result = self.call("Runtime.evaluate", expression=expression, returnByValue=True, awaitPromise=True)
+        return result.get("result", {}).get("value")
+
+    def key(self, key: str, code: str, key_code: int) -> None:
+        for kind in ("keyDown", "keyUp"):
+            self.call("Input.dispatchKeyEvent", type=kind, key=key, code=code, windowsVirtualKeyCode=key_code)
+
+    def screenshot(self, path: Path) -> Path:
+        data = self.call("Page.captureScreenshot", format="png")["data"]
+        path.write_bytes(base64.b64decode(data))
+        return path
+
+    def close(self) -> None:
+        self.ws.close()
+
+
+def _page_websocket(port: int) -> Optional[str]:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/json", timeout=POLL_S * 4) as reply:
+        pages = [t for t in json.loads(reply.read()) if t.get("type") == "page"]
+    return pages[0]["webSocketDebuggerUrl"] if pages else None
+
+
+def _http_ok(port: int) -> bool:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=POLL_S * 4) as reply:
+        return reply.status == 200
+
+
+#: JavaScript: the Time slider of the control panel (a Mantine slider whose label reads "Time").
+FIND_TIME_SLIDER = """
+(() => {
+  const labels = [...document.querySelectorAll('label, p, div')].filter(e => e.childElementCount === 0 && e.textContent.trim() === 'Time');
+  for (const label of labels) {
+    let node = label;
+    for (let depth = 0; depth < 6 && node; depth++, node = node.parentElement) {
+      const slider = node.querySelector('[role="slider"]');
+      if (slider) return slider;
+    }
+  }
+  return null;
+})()
+"""
+
+
+@pytest.fixture(scope="module")
+def viewer_page(tmp_path_factory):
+    """A trained tiny run shown by ns-viewer, opened in headless Chromium: yields (DevTools, folder)."""
+    root = tmp_path_factory.mktemp("viewer")
+    config = train_tiny_run(root, steps=TRAIN_STEPS)
+    viewer_port, debug_port = _free_port(), _free_port()
+    viewer_log = open(root / "ns-viewer.log", "wb")
+    viewer = subprocess.Popen(
+        [str(Path(sys.executable).parent / "ns-viewer"), "--load-config", str(config), "--viewer.websocket-port", str(viewer_port)],
+        stdout=viewer_log, stderr=subprocess.STDOUT,
+    )  # fmt: skip
+    browser = None
+    tools = None
+    try:
+        _wait_for(lambda: viewer.poll() is None and _http_ok(viewer_port), SERVER_TIMEOUT_S, "ns-viewer to serve its page")
+        browser = subprocess.Popen(
+            [CHROMIUM, *CHROMIUM_FLAGS, f"--user-data-dir={root / 'chromium-profile'}", f"--remote-debugging-port={debug_port}",
+             f"http://127.0.0.1:{viewer_port}/"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )  # fmt: skip
+        tools = DevTools(_wait_for(lambda: _page_websocket(debug_port), BROWSER_TIMEOUT_S, "the browser page"))
+        _wait_for(lambda: tools.evaluate(f"!!{FIND_TIME_SLIDER}"), GUI_TIMEOUT_S, "the viewer's Time slider")
+        time.sleep(RENDER_SETTLE_S)
+        yield tools, root
+    finally:
+        if tools is not None:
+            tools.close()
+        for process in (browser, viewer):
+            if process is not None and process.poll() is None:
+                process.terminate()
+                try:
+                    process.wait(timeout=10)
+                except subprocess.TimeoutExpired:
+                    process.kill()
+        viewer_log.close()
+
+
+def _slider_value(tools: DevTools) -> float:
+    return float(tools.evaluate(f"{FIND_TIME_SLIDER}.getAttribute('aria-valuenow')"))
+
+
+def test_time_slider_moves_and_screenshots_differ(viewer_page):
+    tools, root = viewer_page
+    first = tools.screenshot(root / "viewer_t0.png")
+    assert _slider_value(tools) == 0.0
+    tools.evaluate(f"{FIND_TIME_SLIDER}.focus()")
+    tools.key("End", "End", 35)  # a Mantine slider jumps to its maximum
+    _wait_for(lambda: _slider_value(tools) == 1.0, GUI_TIMEOUT_S, "the Time slider to reach 1")
+    time.sleep(RENDER_SETTLE_S)
+    second = tools.screenshot(root / "viewer_t1.png")
+    assert first.stat().st_size > 0 and second.stat().st_size > 0
+
+
+def test_output_dropdown_lists_our_outputs(viewer_page):
+    tools, root = viewer_page
+    options_js = "[...document.querySelectorAll('[role=\"option\"], option')].map(e => e.textContent.trim())"
+    opened = """
+    (() => {
+      const inputs = [...document.querySelectorAll('input')].filter(e => e.value === 'rgb');
+      if (!inputs.length) return false;
+      inputs[0].click();
+      inputs[0].dispatchEvent(new MouseEvent('mousedown', {bubbles: true}));
+      return true;
+    })()
+    """
+    _wait_for(lambda: tools.evaluate(opened), GUI_TIMEOUT_S, "the output dropdown showing 'rgb'")
+    options = _wait_for(lambda: tools.evaluate(options_js), GUI_TIMEOUT_S, "the dropdown options")
+    tools.screenshot(root / "viewer_outputs.png")
+    assert "rgb" in options
+    for name in EXPECTED_OUTPUTS:
+        assert name in options, f"{name} missing from the output dropdown {options}"
