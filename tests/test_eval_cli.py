@@ -150,3 +150,29 @@ def test_novel_cameras_follow_the_training_frame():
     np.testing.assert_allclose(to_homogeneous(moved.camera_to_worlds), apply_sim3(gt_novel, sim3), atol=1e-5)
     assert torch.equal(moved.times, novel.times)
     assert fit_gt_to_model(gt_train[:2], gt_train[:2])[0] is None
+
+
+def test_time_sweep_renders_one_viewpoint_over_time(run_config, tmp_path):
+    import shutil
+
+    from nerfstudio.utils.eval_utils import eval_setup
+    from PIL import Image
+
+    from edygs_ns.scripts.render_time_sweep import render_time_sweep
+
+    _, pipeline, _, _ = eval_setup(run_config, test_mode="test")
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():  # a time-dependent deformation (two training steps leave the heads at zero)
+        pipeline.model.deformation.head_xyz.weight.normal_(0.0, 2.0, generator=gen)
+    has_ffmpeg = shutil.which("ffmpeg") is not None
+    names = ("rgb", "mask", "depth")
+    frames, video = render_time_sweep(pipeline, tmp_path / "sweep", camera_index=4, times=[0.0, 0.0, 1.0], output_names=names,
+                                      fps=5.0, video=has_ffmpeg)  # fmt: skip
+    assert len(frames) == 3
+    images = [np.asarray(Image.open(f).convert("RGB"), dtype=np.int16) for f in frames]
+    assert images[0].shape == (HEIGHT, WIDTH * len(names), 3)
+    np.testing.assert_array_equal(images[0], images[1])  # same time, same frame
+    assert np.abs(images[0] - images[2]).max() > 1  # the deformation moved the scene between t=0 and t=1
+    assert (video is not None and video.stat().st_size > 0) == has_ffmpeg
+    with pytest.raises(ValueError, match="camera_index"):
+        render_time_sweep(pipeline, tmp_path / "bad", camera_index=99, times=[0.0], video=False)

@@ -36,6 +36,7 @@ def make_params() -> Dict[str, torch.nn.Parameter]:
         "features_dc": torch.arange(12, dtype=torch.float32).reshape(4, 3),
         "features_rest": torch.arange(36, dtype=torch.float32).reshape(4, 3, 3),
         "mask_logit": torch.tensor([[10.0], [11.0], [12.0], [13.0]]),
+        "extra_1d": torch.tensor([20.0, 21.0, 22.0, 23.0]),  # an [N] attribute
     }
     return {k: torch.nn.Parameter(v) for k, v in raw.items()}
 
@@ -92,7 +93,7 @@ def test_clone_split_prune_keep_every_attribute_with_its_gaussian() -> None:
     assert_optimizer_aligned(params, optimizers)
     assert state["grad2d"].shape == (5,) and state["count"].shape == (5,)
     for row, src in enumerate(ident):
-        for name in ("quats", "features_dc", "features_rest", "opacities", "mask_logit"):
+        for name in ("quats", "features_dc", "features_rest", "opacities", "mask_logit", "extra_1d"):
             assert torch.equal(params[name][row], original[name][src]), f"row {row} ({name}) lost its Gaussian"
         if src == 1:  # split: scales shrink, means are sampled around the parent
             assert torch.allclose(params["scales"][row], original["scales"][1] - math.log(SPLIT_SHRINK))
@@ -127,7 +128,7 @@ def test_opacity_reset_touches_only_opacities() -> None:
     reset_value = torch.logit(torch.tensor(2.0 * cfg.prune_opa))
     assert torch.allclose(params["opacities"], reset_value.expand(4, 1))
     assert torch.all(optimizers["opacities"].state[params["opacities"]]["exp_avg"] == 0)
-    for name in ("means", "scales", "quats", "features_dc", "features_rest", "mask_logit"):
+    for name in ("means", "scales", "quats", "features_dc", "features_rest", "mask_logit", "extra_1d"):
         assert torch.equal(params[name], before[name]), name
         assert torch.equal(optimizers[name].state[params[name]]["exp_avg"], moments[name]), name
 

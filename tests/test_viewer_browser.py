@@ -25,10 +25,12 @@ from test_eval_cli import train_tiny_run
 CHROMIUM = shutil.which("chromium")
 pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="browser check: Debian chromium is not installed")
 
+#: Browser window size, pixels.
+WINDOW_W, WINDOW_H = 1280, 800
 #: Flags of the headless browser (no sandbox as root, no network chatter, software WebGL).
 CHROMIUM_FLAGS = (
     "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-    "--no-first-run", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--window-size=1280,800",
+    "--no-first-run", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", f"--window-size={WINDOW_W},{WINDOW_H}",
 )  # fmt: skip
 #: Seconds to wait for the viewer server, the browser, the GUI and a render.
 SERVER_TIMEOUT_S = 120.0
@@ -36,10 +38,25 @@ BROWSER_TIMEOUT_S = 30.0
 GUI_TIMEOUT_S = 60.0
 RENDER_SETTLE_S = 6.0
 POLL_S = 0.25
+#: A point inside the 3D viewport (left of the control panel), pixels.
+CENTRE_X, CENTRE_Y = 480.0, 330.0
+#: DevTools key code of the End key.
+END_KEY_CODE = 35
 #: Outputs the model adds beyond rgb, which the dropdown must list.
 EXPECTED_OUTPUTS = ("mask", "rgb_static", "depth")
 #: Training steps of the run shown in the viewer.
 TRAIN_STEPS = 2
+#: Std of the random weights put into the deformation's position head, so that renders depend on time.
+HEAD_WEIGHT_STD = 2.0
+#: Mouse-wheel steps (and delta, pixels) that zoom the viewer camera out until the scene is in view.
+ZOOM_OUT_STEPS = 15
+ZOOM_DELTA_PX = 300.0
+#: A viewport pixel "changed" between two screenshots when its grey level moved by more than this.
+CHANGED_LEVELS = 2.0
+#: Moving time must change at least this many viewport pixels, and this many times more than two
+#: screenshots taken at the same time do (render noise / progressive refinement).
+MIN_CHANGED_PIXELS = 200
+CHANGE_OVER_NOISE = 4
 
 
 def _free_port() -> int:
@@ -88,6 +105,9 @@ class DevTools:
         for kind in ("keyDown", "keyUp"):
             self.call("Input.dispatchKeyEvent", type=kind, key=key, code=code, windowsVirtualKeyCode=key_code)
 
+    def wheel(self, x: float, y: float, delta_y: float) -> None:
+        self.call("Input.dispatchMouseEvent", type="mouseWheel", x=x, y=y, deltaX=0, deltaY=delta_y)
+
     def screenshot(self, path: Path) -> Path:
         data = self.call("Page.captureScreenshot", format="png")["data"]
         path.write_bytes(base64.b64decode(data))
@@ -124,11 +144,40 @@ FIND_TIME_SLIDER = """
 """
 
 
+def _make_time_visible(config: Path) -> None:
+    """Give the run's deformation a time-dependent position offset (its heads start at zero, and
+    two training steps leave them there), so that moving the time slider changes the render."""
+    import torch
+
+    checkpoint = sorted((config.parent / "nerfstudio_models").glob("step-*.ckpt"))[-1]
+    state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    generator = torch.Generator().manual_seed(0)
+    keys = [k for k in state["pipeline"] if k.endswith("deformation.head_xyz.weight")]
+    assert keys, f"{checkpoint} holds no deformation head"
+    for key in keys:
+        state["pipeline"][key] = torch.randn(state["pipeline"][key].shape, generator=generator) * HEAD_WEIGHT_STD
+    torch.save(state, checkpoint)
+
+
+def _viewport(tools: DevTools, screenshot: Path):
+    """The 3D viewport (the largest canvas) cut out of a screenshot, as a float grey array."""
+    import numpy as np
+    from PIL import Image
+
+    box = tools.evaluate(
+        "(() => { const c = [...document.querySelectorAll('canvas')].sort((a, b) => b.width * b.height - a.width * a.height)[0];"
+        " const r = c.getBoundingClientRect(); return [r.left, r.top, r.right, r.bottom].map(Math.round); })()"
+    )
+    with Image.open(screenshot) as image:
+        return np.asarray(image.convert("L").crop(tuple(box)), dtype=np.float32)
+
+
 @pytest.fixture(scope="module")
 def viewer_page(tmp_path_factory):
     """A trained tiny run shown by ns-viewer, opened in headless Chromium: yields (DevTools, folder)."""
     root = tmp_path_factory.mktemp("viewer")
     config = train_tiny_run(root, steps=TRAIN_STEPS)
+    _make_time_visible(config)
     viewer_port, debug_port = _free_port(), _free_port()
     viewer_log = open(root / "ns-viewer.log", "wb")
     viewer = subprocess.Popen(
@@ -146,6 +195,8 @@ def viewer_page(tmp_path_factory):
         )  # fmt: skip
         tools = DevTools(_wait_for(lambda: _page_websocket(debug_port), BROWSER_TIMEOUT_S, "the browser page"))
         _wait_for(lambda: tools.evaluate(f"!!{FIND_TIME_SLIDER}"), GUI_TIMEOUT_S, "the viewer's Time slider")
+        for _ in range(ZOOM_OUT_STEPS):  # the default viewer camera starts inside the tiny scene
+            tools.wheel(CENTRE_X, CENTRE_Y, ZOOM_DELTA_PX)
         time.sleep(RENDER_SETTLE_S)
         yield tools, root
     finally:
@@ -165,32 +216,41 @@ def _slider_value(tools: DevTools) -> float:
     return float(tools.evaluate(f"{FIND_TIME_SLIDER}.getAttribute('aria-valuenow')"))
 
 
-def test_time_slider_moves_and_screenshots_differ(viewer_page):
+def _changed_pixels(tools: DevTools, first: Path, second: Path) -> int:
+    return int((abs(_viewport(tools, second) - _viewport(tools, first)) > CHANGED_LEVELS).sum())
+
+
+def test_time_slider_changes_the_render(viewer_page):
     tools, root = viewer_page
     first = tools.screenshot(root / "viewer_t0.png")
+    assert _viewport(tools, first).max() > 0.0, "the viewport shows nothing at t=0"
+    time.sleep(RENDER_SETTLE_S)
+    again = tools.screenshot(root / "viewer_t0_again.png")
     assert _slider_value(tools) == 0.0
     tools.evaluate(f"{FIND_TIME_SLIDER}.focus()")
-    tools.key("End", "End", 35)  # a Mantine slider jumps to its maximum
+    tools.key("End", "End", END_KEY_CODE)  # a Mantine slider jumps to its maximum
     _wait_for(lambda: _slider_value(tools) == 1.0, GUI_TIMEOUT_S, "the Time slider to reach 1")
     time.sleep(RENDER_SETTLE_S)
     second = tools.screenshot(root / "viewer_t1.png")
-    assert first.stat().st_size > 0 and second.stat().st_size > 0
+    noise = _changed_pixels(tools, first, again)
+    change = _changed_pixels(tools, first, second)
+    print(f"viewport pixels changed: same time {noise}, t=0 -> t=1 {change}")
+    assert change >= MIN_CHANGED_PIXELS and change >= CHANGE_OVER_NOISE * noise, (noise, change)
 
 
 def test_output_dropdown_lists_our_outputs(viewer_page):
     tools, root = viewer_page
-    options_js = "[...document.querySelectorAll('[role=\"option\"], option')].map(e => e.textContent.trim())"
-    opened = """
+    # the "Output type" select shows "rgb"; clicking it opens its listbox (aria-controls)
+    options_js = """
     (() => {
-      const inputs = [...document.querySelectorAll('input')].filter(e => e.value === 'rgb');
-      if (!inputs.length) return false;
-      inputs[0].click();
-      inputs[0].dispatchEvent(new MouseEvent('mousedown', {bubbles: true}));
-      return true;
+      const input = [...document.querySelectorAll('input[aria-haspopup="listbox"]')].find(e => e.value === 'rgb');
+      if (!input) return null;
+      input.click();
+      const box = document.getElementById(input.getAttribute('aria-controls'));
+      return box ? [...box.querySelectorAll('[role="option"]')].map(e => e.textContent.trim()) : null;
     })()
     """
-    _wait_for(lambda: tools.evaluate(opened), GUI_TIMEOUT_S, "the output dropdown showing 'rgb'")
-    options = _wait_for(lambda: tools.evaluate(options_js), GUI_TIMEOUT_S, "the dropdown options")
+    options = _wait_for(lambda: tools.evaluate(options_js), GUI_TIMEOUT_S, "the output dropdown's options")
     tools.screenshot(root / "viewer_outputs.png")
     assert "rgb" in options
     for name in EXPECTED_OUTPUTS:

@@ -18,13 +18,16 @@ dimension N, including "means", "scales" (log), "quats" (raw wxyz) and "opacitie
 with its Gaussian. ``optimizers`` maps each name to an optimizer with one param group.
 Adam's moments are resized with the parameters (new Gaussians start at zero).
 
-Gradient threshold units: ``info["means2d"].grad`` is dL/d(pixel) from the rasteriser. gsplat
-multiplies it by (width / 2, height / 2) and the number of cameras in the batch before taking the
-norm, i.e. it measures the gradient with respect to normalised device coordinates per camera,
-which is the quantity the original 3DGS accumulates (its rasteriser returns dL/d(NDC)). So
-``grow_grad2d`` is directly comparable with 3DGS's ``densify_grad_threshold`` (0.0002); the
-EDyGS authors' 0.0007 (from Deformable 3D Gaussians) is the same quantity with a higher bar
-(fewer new Gaussians). We keep gsplat/3DGS's 0.0002 as the default.
+Gradient threshold units: ``info["means2d"].grad`` is dL/d(pixel) from both backends. gsplat
+multiplies it by (width / 2, height / 2) and by the number of cameras in the batch (the loss is a
+mean over them) before taking the norm, i.e. it accumulates the gradient with respect to
+normalised device coordinates, per visible camera. That is the quantity the original 3DGS
+rasteriser accumulates (its backward returns dL/d(NDC) = W/2 * dL/d(pixel)), so ``grow_grad2d``
+compares directly with 3DGS's ``densify_grad_threshold`` (0.0002). A threshold quoted from code
+that accumulates pixel-space gradients would have to be divided by W/2 first; the 7e-4 of the
+reference notes, if it comes from a 3DGS-style rasteriser, is the same NDC quantity with a higher
+bar (fewer new Gaussians). The default stays gsplat's/3DGS's 0.0002; set 7e-4 to follow the
+authors.
 """
 
 from __future__ import annotations

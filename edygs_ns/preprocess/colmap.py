@@ -45,6 +45,11 @@ class ColmapConfig:
     """One shared camera: PINHOLE (fx, fy, cx, cy), SIMPLE_PINHOLE (one focal length), or OPENCV
     (adds k1, k2, p1, p2) when the lens distorts; OPENCV makes edygs-process undistort the
     latents, blurry frames and event maps with the estimated parameters."""
+    camera_params: Optional[str] = None
+    """Known intrinsics as COLMAP reads them for the model, e.g. "fx,fy,cx,cy" for PINHOLE (pixels,
+    principal point with pixel centres at +0.5). None: COLMAP starts from 1.2 x the larger image side."""
+    refine_focal_length: bool = True
+    """Let bundle adjustment refine the focal length (and distortion); False keeps camera_params fixed."""
     matching_overlap: int = 10
     """Sequential matching: each latent is matched with this many following latents."""
     quadratic_overlap: bool = True
@@ -188,6 +193,8 @@ def _extract(database: Path, image_dir: Path, names: Sequence[str], config: Colm
 
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = config.camera_model
+    if config.camera_params is not None:
+        reader.camera_params = config.camera_params
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.use_gpu = False
     extraction.num_threads = config.num_threads
@@ -226,6 +233,10 @@ def _map(database: Path, image_dir: Path, sparse_dir: Path, n_images: int, confi
     options.num_threads = config.num_threads
     options.extract_colors = True
     options.ba_refine_principal_point = False
+    options.ba_refine_focal_length = config.refine_focal_length
+    options.ba_refine_extra_params = config.refine_focal_length
+    options.mapper.abs_pose_refine_focal_length = config.refine_focal_length
+    options.mapper.abs_pose_refine_extra_params = config.refine_focal_length
     options.mapper.init_min_num_inliers = config.init_min_num_inliers
     options.mapper.abs_pose_min_num_inliers = config.abs_pose_min_num_inliers
     sparse_dir.mkdir(parents=True, exist_ok=True)
@@ -295,7 +306,7 @@ def registration_message(result: ColmapResult, min_fraction: float, shown: int) 
     listed = ", ".join(missing[:shown]) + (f", ... ({len(missing) - shown} more)" if len(missing) > shown else "")
     return (
         f"COLMAP registered only {result.num_registered} of {total} latent frames "
-        f"({100.0 * result.num_registered / max(total, 1):.1f}%, the minimum is {100.0 * min_fraction:.0f}%). "
+        f"({result.num_registered / max(total, 1):.1%}, the minimum is {min_fraction:.0%}). "
         f"Not registered: {listed or 'none'}. No transforms.json was written. Try: a capture with more texture; "
         "a smaller --frame-stride (more overlap between frames); a lower --k (fewer, cleaner latents); "
         "a larger --colmap.matching-overlap; --colmap.camera-model OPENCV if the lens distorts; "

@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 from edygs_ns.events.accumulate import latent_times_us
-from edygs_ns.events.exposures import Exposure, check_frames_match, read_exposures
+from edygs_ns.events.exposures import Exposure, read_exposures
 from edygs_ns.events.readers import ArrayEventSource, EventSource, open_event_source, read_aedat4
 from edygs_ns.events.types import EventArray
 
@@ -519,7 +519,6 @@ def load_exposure_table(config: InputConfig, k: int) -> Capture:
     all_exposures = read_exposures(csv_path)
     if not all_exposures:
         raise ValueError(f"{csv_path}: the exposure table lists no frame")
-    check_frames_match(all_exposures, [e.file for e in all_exposures], str(csv_path))
     indices = select_indices(len(all_exposures), config, str(csv_path))
     exposures = [all_exposures[i] for i in indices]
     names = [str(e.file) for e in exposures]

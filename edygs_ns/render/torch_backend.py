@@ -1,15 +1,18 @@
 """The CPU reference rasteriser: gsplat's tile-based splatting in PyTorch, any device.
 
 Pipeline: project (``projection.py``), cull, bin every visible Gaussian into the 8x8-pixel tiles
-its 3-sigma square touches, sort the (tile, depth) pairs with one int64 sort, then composite each
-tile front to back with gsplat's alpha rules. The compositing is a hand-written
-``torch.autograd.Function`` working on blocks of tiles laid out [tiles, pixels, K] (K: Gaussians
-of the tile, padded to the block's largest tile), so work and memory follow the pixels each
-Gaussian covers and every block stays about ``BLOCK_ELEMENTS`` floats.
+it can reach (gsplat's 3-sigma square, cut to where its alpha reaches 1/255), sort the
+(tile, depth) pairs with one int64 sort, then composite each tile front to back with gsplat's
+alpha rules.
 
-Inside a tile a Gaussian's exponent is a quadratic polynomial of the pixel position, so the
-exponents of a whole block are one matmul ``[P, 6] @ [tiles, 6, K]``; its backward is the
-transposed matmul. Opacity enters the same exponent as ``-log(o)``.
+Inside a tile a Gaussian's exponent -sigma + log(o) is a quadratic polynomial of the pixel
+position relative to the tile centre; its 6 coefficients are computed per (Gaussian, tile)
+intersection with ordinary autograd ops. The compositing is a hand-written
+``torch.autograd.Function`` over blocks of tiles laid out [tiles, pixels, K] (K: intersections
+of the tile, padded to the block's largest tile): the exponents of a block are one matmul
+``[P, 6] @ [tiles, 6, K]``, the colours one bmm, and its backward returns gradients per
+intersection. Work and memory follow the pixels each Gaussian covers; every block holds about
+``BLOCK_ELEMENTS`` elements.
 """
 
 from __future__ import annotations
@@ -34,23 +37,23 @@ from edygs_ns.render.contract import (
 )
 from edygs_ns.render.projection import project_gaussians
 
-#: tile edge in pixels (8x8 measured faster than 4x4 and 16x16 on CPU).
+#: tile edge in pixels (8x8 measured faster than 16x16 and on par with 4x4 on CPU).
 TILE_SIZE = 8
 #: target number of [tile, pixel, Gaussian] elements per compositing block (2 MiB in float32).
 BLOCK_ELEMENTS = 1 << 19
-#: forward keeps alpha and transmittance for backward while they fit in this many bytes;
-#: above it the backward recomputes them block by block.
+#: forward keeps the weights for backward while they fit in this many bytes; above it the
+#: backward recomputes them block by block.
 SAVE_BUDGET_BYTES = 256 << 20
 #: exponents are clamped here before exp (exp(-20) < ALPHA_MIN; CPU exp is slow far below).
 MAX_EXPONENT = 20.0
 #: opacities are clamped to this before the log (only matters for exactly-zero opacities).
 MIN_OPACITY = 1e-30
-#: log-opacity of the padding Gaussian: its alpha underflows to 0 everywhere.
-PAD_LOG_OPACITY = -1e4
+#: constant exponent of the padding intersection: its alpha underflows to 0 everywhere.
+PAD_EXPONENT = -1e4
 #: expected depth divides by alpha clamped to this (gsplat's value).
 MIN_ALPHA_FOR_DEPTH = 1e-10
-#: columns of the per-Gaussian table before the features: x, y, conic a, b, c, log opacity.
-N_GEOMETRY = 6
+#: exponent coefficients per intersection: 1, x, y, x^2, y^2, xy of the tile-local pixel position.
+N_COEFFS = 6
 #: offset of a pixel centre from its corner (gsplat samples at j + 0.5).
 PIXEL_CENTRE = 0.5
 #: slack on the exponent when dropping (Gaussian, tile) pairs whose alpha is below ALPHA_MIN.
@@ -60,16 +63,18 @@ LOG2_E = 1.0 / math.log(2.0)
 
 @dataclass
 class TileBins:
-    """Visible Gaussians sorted by (camera, tile, depth).
+    """Visible Gaussians sorted by (camera, tile, depth): M (Gaussian, tile) intersections.
 
     Attributes:
         flat_ids: [M] int64 index c * N + n of the Gaussian of each intersection.
+        tile_ids: [M] int64 tile (c * T + row * tiles_x + column) of each intersection.
         tile_starts: [C * T] int64 first intersection of each tile.
         tile_counts: [C * T] int64 number of intersections of each tile.
         tiles_x, tiles_y: tiles per image row / column (T = tiles_x * tiles_y).
     """
 
     flat_ids: Tensor
+    tile_ids: Tensor
     tile_starts: Tensor
     tile_counts: Tensor
     tiles_x: int
@@ -78,11 +83,10 @@ class TileBins:
 
 @dataclass
 class _Block:
-    """A group of tiles composited together; ``ids`` [t, K] indexes the Gaussian table."""
+    """Tiles composited together; ``slots`` [t, K] index the intersection table (pad = last row)."""
 
-    tiles: Tensor  # [t] global tile ids
-    ids: Tensor  # [t, K] rows of the table, padding = last row
-    centres: Tensor  # [t, 2] tile centres in pixels
+    tiles: Tensor
+    slots: Tensor
     can_clamp: bool  # some Gaussian of the block has opacity above ALPHA_MAX
 
 
@@ -150,37 +154,33 @@ def bin_gaussians(
         keys, order = torch.sort((tile << 32) | per_owner[:, 3])
         tile_counts = torch.bincount(keys >> 32, minlength=n_cams * n_tiles)
         tile_starts = torch.cumsum(tile_counts, 0) - tile_counts
-    return TileBins(flat.index_select(0, owner.index_select(0, order)), tile_starts, tile_counts, tiles_x, tiles_y)
+    return TileBins(
+        flat.index_select(0, owner.index_select(0, order)), keys >> 32, tile_starts, tile_counts, tiles_x, tiles_y
+    )
 
 
-def _plan_blocks(bins: TileBins, pad_row: int, tile_size: int, max_opacity: Tensor) -> List[_Block]:
+def _plan_blocks(bins: TileBins, tile_size: int, opacity_of_isect: Tensor) -> List[_Block]:
     """Group non-empty tiles (largest first) into blocks of about BLOCK_ELEMENTS elements.
 
     Args:
-        max_opacity: [C * N + 1] opacity of every table row, to flag blocks where alpha can clamp.
+        opacity_of_isect: [M + 1] opacity of each intersection's Gaussian (0 for the pad row).
     """
     pixels = tile_size * tile_size
     counts = bins.tile_counts
+    pad = len(bins.flat_ids)
     order = torch.argsort(counts, descending=True)
-    n_busy = int((counts > 0).sum())
-    order = order[:n_busy]
+    order = order[: int((counts > 0).sum())]
     sorted_counts = counts[order].tolist()
-    n_tiles = bins.tiles_x * bins.tiles_y
     blocks: List[_Block] = []
     start = 0
-    while start < n_busy:
+    while start < len(sorted_counts):
         k = sorted_counts[start]
-        stop = min(n_busy, start + max(1, BLOCK_ELEMENTS // (pixels * k)))
+        stop = min(len(sorted_counts), start + max(1, BLOCK_ELEMENTS // (pixels * k)))
         tiles = order[start:stop]
         slot = torch.arange(k, device=counts.device)
-        pos = bins.tile_starts[tiles, None] + slot
-        inside = slot < counts[tiles, None]
-        pos = torch.where(inside, pos, torch.zeros_like(pos))
-        ids = torch.where(inside, bins.flat_ids[pos], torch.full_like(pos, pad_row))
-        in_image = tiles % n_tiles
-        centres = torch.stack([in_image % bins.tiles_x, torch.div(in_image, bins.tiles_x, rounding_mode="floor")], -1)
-        can_clamp = bool(max_opacity[ids].max() > ALPHA_MAX)
-        blocks.append(_Block(tiles, ids, centres * tile_size + tile_size / 2.0, can_clamp))
+        slots = torch.where(slot < counts[tiles, None], bins.tile_starts[tiles, None] + slot, pad)
+        can_clamp = bool(opacity_of_isect[slots].max() > ALPHA_MAX)
+        blocks.append(_Block(tiles, slots, can_clamp))
         start = stop
     return blocks
 
@@ -193,48 +193,50 @@ def _pixel_basis(tile_size: int, dtype: torch.dtype, device: torch.device) -> Te
     return torch.stack([torch.ones_like(px), px, py, px * px, py * py, px * py], dim=-1)
 
 
-def _exponent_coefficients(geom: Tensor, centres: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
-    """Coefficients [t, 6, K] of sigma - log(o) as a polynomial of tile-local pixel position.
+def exponent_coefficients(
+    means2d: Tensor, conics: Tensor, log_opacity: Tensor, centres: Tensor
+) -> Tensor:
+    """Coefficients of log(alpha) = log(o) - sigma as a polynomial of the pixel offset from a centre.
 
-    Returns the coefficients and the tile-local centre coordinates mx, my [t, K].
+    Args:
+        means2d: [M, 2] Gaussian centres. conics: [M, 3] (a, b, c). log_opacity: [M].
+        centres: [M, 2] tile centres, pixels.
+
+    Returns:
+        [M, 6] coefficients of (1, x, y, x^2, y^2, xy).
     """
-    mx = geom[..., 0] - centres[:, None, 0].to(geom.dtype)
-    my = geom[..., 1] - centres[:, None, 1].to(geom.dtype)
-    ca, cb, cc, log_o = geom[..., 2], geom[..., 3], geom[..., 4], geom[..., 5]
-    coeffs = torch.stack(
+    mx, my = (means2d - centres).unbind(-1)
+    ca, cb, cc = conics.unbind(-1)
+    return torch.stack(
         [
-            0.5 * ca * mx * mx + 0.5 * cc * my * my + cb * mx * my - log_o,
-            -(ca * mx + cb * my),
-            -(cc * my + cb * mx),
-            0.5 * ca,
-            0.5 * cc,
-            cb,
+            log_opacity - 0.5 * ca * mx * mx - 0.5 * cc * my * my - cb * mx * my,
+            ca * mx + cb * my,
+            cc * my + cb * mx,
+            -0.5 * ca,
+            -0.5 * cc,
+            -cb,
         ],
-        dim=1,
+        dim=-1,
     )
-    return coeffs, mx, my
 
 
-def _block_forward(
-    basis2: Tensor, rows: Tensor, block: _Block, need_grad: bool
-) -> Tuple[Tensor, Optional[Tensor], Optional[Tensor]]:
+def _block_forward(basis2: Tensor, rows: Tensor, can_clamp: bool, need_grad: bool) -> Tuple[Tensor, Tensor, Optional[Tensor]]:
     """Compositing weights of one block, gsplat's rules.
 
     Args:
         basis2: [P, 6] pixel monomials times log2(e) (exp2 is about twice as fast as exp on CPU).
-        rows: [t, K, 6 + F] gathered table rows.
+        rows: [t, K, 6 + F] gathered intersection rows (coefficients, features).
 
     Returns:
-        weights w = alpha * T_before [t, P, K]; when need_grad also alpha / (1 - alpha) [t, P, K]
-        and, for blocks where alpha can clamp, the [t, P, K] mask of unclamped alphas.
+        weights w = alpha * T_before [t, P, K]; alpha / (1 - alpha) [t, P, K] (meaningful only
+        when need_grad); for blocks where alpha can clamp, the [t, P, K] mask of unclamped alphas.
     """
-    coeffs, _, _ = _exponent_coefficients(rows[..., :N_GEOMETRY], block.centres)
-    alpha = torch.matmul(basis2, coeffs.neg_())  # log2(o) - log2(e) * sigma
+    alpha = torch.matmul(basis2, rows[..., :N_COEFFS].transpose(1, 2))  # log2(alpha)
     F.threshold_(alpha, -MAX_EXPONENT * LOG2_E, -MAX_EXPONENT * LOG2_E)  # clamp from below
     alpha.exp2_()
     F.threshold_(alpha, ALPHA_MIN, 0.0)  # gsplat skips alpha < 1/255
     unclamped = None
-    if block.can_clamp:
+    if can_clamp:
         unclamped = alpha < ALPHA_MAX if need_grad else None
         F.hardtanh_(alpha, 0.0, ALPHA_MAX)
     n_tiles, n_pix, k = alpha.shape
@@ -248,34 +250,27 @@ def _block_forward(
         keep = F.threshold_(trans, TRANSMITTANCE_MIN, 0.0).sign_()[..., 1:]  # reuses the buffer
         weights.mul_(keep)
         alpha.mul_(keep)
-    if not need_grad:
-        return weights, None, None
-    one_minus = torch.neg(alpha, out=trans[..., 1:]).add_(1.0)
-    return weights, alpha.div_(one_minus), unclamped
-
-
-def _gather_rows(table: Tensor, ids: Tensor) -> Tensor:
-    """[t, K, columns] rows of the table (index_select is faster than advanced indexing on CPU)."""
-    return table.index_select(0, ids.reshape(-1)).view(*ids.shape, table.shape[1])
+    if need_grad:
+        alpha.div_(torch.neg(alpha, out=trans[..., 1:]).add_(1.0))
+    return weights, alpha, unclamped
 
 
 class _Composite(torch.autograd.Function):
-    """Front-to-back compositing of tile blocks; table rows: x, y, a, b, c, log o, features."""
+    """Front-to-back compositing of tile blocks from the [M + 1, 6 + F] intersection table."""
 
     @staticmethod
     def forward(ctx, table: Tensor, blocks: List[_Block], n_tiles: int, tile_size: int) -> Tensor:  # type: ignore[override]
-        basis = _pixel_basis(tile_size, table.dtype, table.device)
-        basis2 = basis * LOG2_E
-        n_feat = table.shape[1] - N_GEOMETRY
-        out = table.new_zeros(n_tiles, n_feat, basis.shape[0])  # channels before pixels: fast bmm
+        basis2 = _pixel_basis(tile_size, table.dtype, table.device) * LOG2_E
+        n_feat = table.shape[1] - N_COEFFS
+        out = table.new_zeros(n_tiles, n_feat, basis2.shape[0])  # channels before pixels: fast bmm
         need_grad = bool(ctx.needs_input_grad[0])
-        n_elements = sum(b.ids.numel() for b in blocks) * basis.shape[0]
+        n_elements = sum(b.slots.numel() for b in blocks) * basis2.shape[0]
         save = need_grad and 2 * n_elements * table.element_size() <= SAVE_BUDGET_BYTES
-        saved: List[Tuple[Tensor, Optional[Tensor], Optional[Tensor]]] = []
+        saved: List[Tuple[Tensor, Tensor, Optional[Tensor]]] = []
         for block in blocks:
-            rows = _gather_rows(table, block.ids)  # [t, K, 6 + F]
-            weights, ratio, unclamped = _block_forward(basis2, rows, block, need_grad)
-            out.index_copy_(0, block.tiles, torch.bmm(rows[..., N_GEOMETRY:].transpose(1, 2), weights.transpose(1, 2)))
+            rows = _gather_rows(table, block.slots)
+            weights, ratio, unclamped = _block_forward(basis2, rows, block.can_clamp, need_grad)
+            out.index_copy_(0, block.tiles, torch.bmm(rows[..., N_COEFFS:].transpose(1, 2), weights.transpose(1, 2)))
             if save:
                 saved.append((weights, ratio, unclamped))
         ctx.blocks, ctx.saved, ctx.tile_size = blocks, saved, tile_size
@@ -286,46 +281,33 @@ class _Composite(torch.autograd.Function):
     def backward(ctx, grad_out: Tensor):  # type: ignore[override]
         (table,) = ctx.saved_tensors
         basis = _pixel_basis(ctx.tile_size, table.dtype, table.device)
-        grad_table = table.new_zeros(table.shape[1], table.shape[0])  # [columns, rows]: fast index_add
+        grad_table = table.new_zeros(table.shape[1], table.shape[0])  # [columns, rows]
         grad_out = grad_out.contiguous()
         for i, block in enumerate(ctx.blocks):
-            rows = _gather_rows(table, block.ids)
+            rows = _gather_rows(table, block.slots)
             if ctx.saved:
                 weights, ratio, unclamped = ctx.saved[i]
             else:
-                weights, ratio, unclamped = _block_forward(basis * LOG2_E, rows, block, True)
-            _, mx, my = _exponent_coefficients(rows[..., :N_GEOMETRY], block.centres)
+                weights, ratio, unclamped = _block_forward(basis * LOG2_E, rows, block.can_clamp, True)
             g_pix = grad_out.index_select(0, block.tiles)  # [t, P, F]
-            # with h_k = dL/dC . f_k:  dL/dalpha_k = T_k h_k - (sum_{j>k} w_j h_j) / (1 - alpha_k),
-            # and dalpha/dexponent = alpha, so dL/dexponent = w_k h_k - ratio_k * sum_{j>k} w_j h_j
-            g = torch.bmm(g_pix, rows[..., N_GEOMETRY:].transpose(1, 2)).mul_(weights)  # [t, P, K]
+            # with h_k = dL/dC . f_k:  dL/dalpha_k = T_k h_k - (sum_{j>k} w_j h_j) / (1 - alpha_k);
+            # dalpha/dlog(alpha) = alpha, so dL/dlog(alpha_k) = w_k h_k - ratio_k * sum_{j>k} w_j h_j
+            g = torch.bmm(g_pix, rows[..., N_COEFFS:].transpose(1, 2)).mul_(weights)  # [t, P, K]
             later = torch.cumsum(g, -1)
             later.sub_(later[..., -1:].clone()).mul_(ratio)
             g.add_(later)
             if unclamped is not None:
                 g.mul_(unclamped)
-            g_coeffs = torch.matmul(basis.t(), g).neg_()  # [t, 6, K], exponent = -(basis @ coeffs)
-            g_feats = torch.bmm(g_pix.transpose(1, 2), weights)  # [t, F, K]
-            g0, g1, g2, g3, g4, g5 = g_coeffs.unbind(1)
-            ca, cb, cc = rows[..., 2], rows[..., 3], rows[..., 4]
-            g_rows = torch.cat(
-                [
-                    torch.stack(
-                        [
-                            (ca * mx + cb * my) * g0 - ca * g1 - cb * g2,
-                            (cc * my + cb * mx) * g0 - cc * g2 - cb * g1,
-                            0.5 * mx * mx * g0 - mx * g1 + 0.5 * g3,
-                            mx * my * g0 - my * g1 - mx * g2 + g5,
-                            0.5 * my * my * g0 - my * g2 + 0.5 * g4,
-                            -g0,
-                        ]
-                    ),
-                    g_feats.transpose(0, 1),
-                ]
-            )  # [columns, t, K]
-            grad_table.index_add_(1, block.ids.reshape(-1), g_rows.reshape(table.shape[1], -1))
+            g_rows = torch.cat([torch.matmul(basis.t(), g), torch.bmm(g_pix.transpose(1, 2), weights)], 1)  # [t, 6+F, K]
+            grad_table.index_copy_(1, block.slots.reshape(-1), g_rows.transpose(0, 1).reshape(table.shape[1], -1))
         ctx.saved = None
+        grad_table[:, -1] = 0.0  # the pad row (several slots wrote to it)
         return grad_table.t(), None, None, None
+
+
+def _gather_rows(table: Tensor, slots: Tensor) -> Tensor:
+    """[t, K, columns] rows of the table (index_select is faster than advanced indexing on CPU)."""
+    return table.index_select(0, slots.reshape(-1)).view(*slots.shape, table.shape[1])
 
 
 def _tiles_to_image(tiled: Tensor, n_cams: int, bins: TileBins, width: int, height: int, tile_size: int) -> Tensor:
@@ -378,26 +360,35 @@ def rasterize_torch(
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
-    log_opacity = torch.log(opacities.clamp(min=MIN_OPACITY))
-    feats = features.expand(n_cams, n, n_channels) if features.dim() == 2 else features
+    bins = bin_gaussians(means2d, proj.radii, proj.depths, width, height, tile_size, proj.conics, opacities)
+
+    # one row per intersection: exponent coefficients, then features, depth and 1 (for alpha)
+    flat, gauss = bins.flat_ids, bins.flat_ids % n
+    in_image = bins.tile_ids % (bins.tiles_x * bins.tiles_y)
+    corner = torch.stack([in_image % bins.tiles_x, torch.div(in_image, bins.tiles_x, rounding_mode="floor")], -1)
+    centres = (corner * tile_size).to(means2d.dtype) + tile_size / 2.0
+    feats = features.reshape(-1, n_channels) if features.dim() == 3 else features
+    coeffs = exponent_coefficients(
+        means2d.reshape(-1, 2).index_select(0, flat),
+        proj.conics.reshape(-1, 3).index_select(0, flat),
+        torch.log(opacities.clamp(min=MIN_OPACITY)).index_select(0, gauss),
+        centres,
+    )
     table = torch.cat(
         [
-            means2d,
-            proj.conics,
-            log_opacity.expand(n_cams, n)[..., None],
-            feats,
-            proj.depths[..., None],
-            torch.ones_like(proj.depths)[..., None],
+            coeffs,
+            feats.index_select(0, flat if features.dim() == 3 else gauss),
+            proj.depths.reshape(-1, 1).index_select(0, flat),
+            torch.ones_like(coeffs[:, :1]),
         ],
         dim=-1,
-    ).reshape(n_cams * n, -1)
-    pad = torch.zeros(1, table.shape[1], dtype=table.dtype, device=table.device)
-    pad[0, N_GEOMETRY - 1] = PAD_LOG_OPACITY
+    )
+    pad = table.new_zeros(1, table.shape[1])
+    pad[0, 0] = PAD_EXPONENT
     table = torch.cat([table, pad], dim=0)
 
-    bins = bin_gaussians(means2d, proj.radii, proj.depths, width, height, tile_size, proj.conics, opacities)
-    row_opacity = torch.cat([opacities.detach().repeat(n_cams), opacities.new_zeros(1)])
-    blocks = _plan_blocks(bins, pad_row=n_cams * n, tile_size=tile_size, max_opacity=row_opacity)
+    opacity_of_isect = torch.cat([opacities.detach().index_select(0, gauss), opacities.new_zeros(1)])
+    blocks = _plan_blocks(bins, tile_size, opacity_of_isect)
     tiled = _Composite.apply(table, blocks, n_cams * bins.tiles_x * bins.tiles_y, tile_size)
     image = _tiles_to_image(tiled, n_cams, bins, width, height, tile_size)
     colour, depth_sum, alpha = image[..., :n_channels], image[..., n_channels : n_channels + 1], image[..., -1:]

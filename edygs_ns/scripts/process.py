@@ -62,6 +62,8 @@ GIVEN_POSES_NPZ = "given_poses.npz"
 POSES_NPZ = "poses.npz"
 EVENT_MAPS_WORK = "event_maps.npy"
 COLMAP_WORK = "colmap"
+#: Microseconds per second (summaries in seconds).
+US_PER_SECOND = 1_000_000
 #: Largest 8-bit value, for writing latents in [0, 1] as PNG.
 UINT8_MAX = 255
 #: Unregistered latent names listed in the failure message (all are in process_report.json).
@@ -203,7 +205,7 @@ class Pipeline:
         (self.work / CAPTURE_JSON).write_text(json.dumps(meta, indent=2))
         if capture.events is not None:
             t0, t1 = capture.events.t_range()
-            events = f"{len(capture.events):,} events over {(t1 - t0) / 1e6:.2f} s"
+            events = f"{len(capture.events):,} events over {(t1 - t0) / US_PER_SECOND:.2f} s"
         else:
             events = "pre-binned events"
         poses = f", given poses from {given.source}" if given is not None else ""
@@ -218,6 +220,7 @@ class Pipeline:
         (self.work / "latents").mkdir(parents=True, exist_ok=True)
         maps = np.lib.format.open_memmap(self.work / EVENT_MAPS_WORK, mode="w+", dtype=np.float32, shape=(n, self.k - 1, h, w))
         capture = self.capture
+        blurry = self.blurry_paths()
         total_events = 0.0
         with progress_bar("EDI latents", n) as advance:
             for i, exposure in enumerate(exposures):
@@ -227,7 +230,7 @@ class Pipeline:
                     bins = exposure_bins(capture.events, [exposure], self.k)[0] * meta["event_count_scale"]
                 maps[i] = bins
                 total_events += float(np.abs(bins).sum())
-                latents = edi_from_frame(read_rgb_png(self.blurry_paths()[i]), bins, self.config.edi)
+                latents = edi_from_frame(read_rgb_png(blurry[i]), bins, self.config.edi)
                 for j in range(self.k):
                     pixels = np.clip(np.round(latents[j] * UINT8_MAX), 0, UINT8_MAX).astype(np.uint8)
                     write_rgb_png(self.work / "latents" / latent_name(i, j), pixels)
@@ -235,7 +238,7 @@ class Pipeline:
         maps.flush()
         del maps
         return (f"{n * self.k} latents from {n} frames (k={self.k}, theta={self.config.edi.theta}, "
-                f"{self.config.edi.color_space}), {total_events:,.0f} events binned")
+                f"{self.config.edi.color_space}), total |signed bin count| {total_events:,.0f}")
 
     def poses(self) -> str:
         """COLMAP on the latents, or the given poses with random initial points."""
@@ -423,9 +426,11 @@ def entrypoint() -> None:
     except (RegistrationError, FileExistsError, FileNotFoundError, ValueError) as err:
         CONSOLE.print(f"[bold red]edygs-process failed:[/] {err}")
         sys.exit(1)
+    interpolated = len(report["interpolated_latents"])
     CONSOLE.print(
-        f"[bold]edygs-process[/]: {report['registered_latents']}/{report['total_latents']} latents posed "
-        f"({report['pose_source']}), {report['num_points']:,} points -> {config.output}"
+        f"[bold]edygs-process[/]: {report['registered_latents']}/{report['total_latents']} latents posed by "
+        f"{report['pose_source']}" + (f", {interpolated} interpolated in time" if interpolated else "")
+        + f", {report['num_points']:,} points -> {config.output}"
     )
 
 
