@@ -41,8 +41,10 @@ FIRST_CAMERA_ID = 1
 class ColmapConfig:
     """COLMAP settings (pycolmap, CPU)."""
 
-    camera_model: Literal["PINHOLE", "SIMPLE_PINHOLE", "OPENCV"] = "PINHOLE"
-    """One shared camera: PINHOLE (fx, fy, cx, cy), SIMPLE_PINHOLE (one focal length), or OPENCV
+    camera_model: Literal["PINHOLE", "SIMPLE_PINHOLE", "OPENCV"] = "SIMPLE_PINHOLE"
+    """One shared camera: SIMPLE_PINHOLE (one focal length, square pixels: the default, since event
+    cameras and their APS frames have square pixels and a separate fy let COLMAP drift to a wrong
+    aspect on small captures), PINHOLE (fx, fy, cx, cy), or OPENCV
     (adds k1, k2, p1, p2) when the lens distorts; OPENCV makes edygs-process undistort the
     latents, blurry frames and event maps with the estimated parameters."""
     camera_params: Optional[str] = None
