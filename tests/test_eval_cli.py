@@ -7,6 +7,7 @@ import json
 import math
 import sys
 from pathlib import Path
+from typing import Dict
 
 import numpy as np
 import pytest
@@ -51,9 +52,20 @@ def train_tiny_run(root: Path, steps: int = TRAIN_STEPS) -> Path:
     return config.get_base_dir() / "config.yml"
 
 
+#: The tiny run shared by every test of the session that only reads it (trained once).
+_SHARED_RUN: Dict[str, Path] = {}
+
+
+def shared_tiny_run(tmp_path_factory) -> Path:
+    """config.yml of one tiny trained run per test session; tests must not modify its files."""
+    if "config" not in _SHARED_RUN:
+        _SHARED_RUN["config"] = train_tiny_run(tmp_path_factory.mktemp("shared_run"))
+    return _SHARED_RUN["config"]
+
+
 @pytest.fixture(scope="module")
 def run_config(tmp_path_factory) -> Path:
-    return train_tiny_run(tmp_path_factory.mktemp("eval_run"))
+    return shared_tiny_run(tmp_path_factory)
 
 
 @pytest.fixture(autouse=True)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 from plyfile import PlyData
-from test_eval_cli import train_tiny_run
+from test_eval_cli import shared_tiny_run
 
 from edygs_ns.model.deformation import DeformationConfig
 from edygs_ns.model.edygs_model import EdygsModelConfig
@@ -93,12 +93,12 @@ def test_time_outside_the_clip_is_rejected():
         baked_gaussians(_model(), 1.5)
 
 
-def test_cli_exports_a_trained_run(tmp_path, monkeypatch):
+def test_cli_exports_a_trained_run(tmp_path, tmp_path_factory, monkeypatch):
     from nerfstudio.utils.eval_utils import eval_setup
 
     from edygs_ns.scripts import export
 
-    config = train_tiny_run(tmp_path, steps=2)
+    config = shared_tiny_run(tmp_path_factory)
     out = tmp_path / "export"
     monkeypatch.setattr(sys, "argv", ["edygs-export", "--load-config", str(config), "--output-dir", str(out), "--time", "0.5"])
     export.entrypoint()

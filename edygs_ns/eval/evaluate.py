@@ -29,7 +29,6 @@ dynamic masks. Written files, under `output_dir`:
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Mapping, Optional, Sequence, Tuple
@@ -46,31 +45,32 @@ from edygs_ns.eval.figures import plot_psnr_over_time, plot_trajectories, save_g
 from edygs_ns.eval.lpips_loader import LpipsMetric, lpips_or_none
 from edygs_ns.eval.metrics import MetricSet, mask_iou, psnr, ssim
 from edygs_ns.eval.pose_alignment import (
+    INITIAL_POSES_SPLIT,
+    POSE_METRIC_KEYS,
+    REFINED_POSES_SPLIT,
     Sim3,
+    TrainPoses,
     align_cameras,
-    fit_gt_to_model,
+    novel_alignment,
+    pose_rows,
     refined_train_poses,
     scale_translations,
     to_homogeneous,
     with_poses,
 )
 from edygs_ns.eval.report import DEFAULT_NOTES, markdown_table, write_metrics
-from edygs_ns.eval.trajectory import align_poses, rotation_angle, trajectory_metrics
+from edygs_ns.eval.trajectory import align_poses
 
 EvalSplit = Literal["input", "novel", "both"]
 
 #: Row (split) names of the metrics table.
 INPUT_SPLIT = "input views"
 NOVEL_SPLIT = "novel views"
-INITIAL_POSES_SPLIT = "poses (initial)"
-REFINED_POSES_SPLIT = "poses (refined)"
 #: Method rows of the reference images scored against the same ground truth as the input views.
 EDI_REFERENCE = "EDI latent"
 BLURRY_REFERENCE = "blurry input"
 #: Metric keys every image split carries (a number summary, or a reason string when unavailable).
 IMAGE_METRIC_KEYS: Tuple[str, ...] = ("psnr", "ssim", "lpips_alex", "lpips_vgg", "mask_iou")
-#: Metric keys every pose split carries.
-POSE_METRIC_KEYS: Tuple[str, ...] = ("ate", "ate_frac", "rpe_t", "rpe_r", "extent")
 #: LPIPS backbones reported (metric key "lpips_<net>").
 LPIPS_NETS: Tuple[str, ...] = ("alex", "vgg")
 #: Columns of the per-view grids.
@@ -120,17 +120,6 @@ class ViewGroup:
         if self.cameras.times is None:
             return np.zeros(self.cameras.shape[0])
         return self.cameras.times.reshape(-1).detach().cpu().double().numpy()
-
-
-@dataclass
-class TrainPoses:
-    """Training-latent poses [N, 4, 4] float64 in the dataparser frame, and the dataparser scale."""
-
-    initial: np.ndarray
-    refined: np.ndarray
-    gt: Optional[np.ndarray]
-    scale: float
-    refined_note: str = ""
 
 
 # ----------------------------------------------------------------------------- loading
@@ -251,44 +240,6 @@ def novel_views(pipeline: Any, sim3: Optional[Sim3], sim3_note: str) -> ViewGrou
 # ----------------------------------------------------------------------------- poses
 
 
-def pose_rows(poses: TrainPoses) -> Dict[str, Dict[str, Any]]:
-    """Trajectory metrics of the initial and refined poses (POSE_METRIC_KEYS), in capture units.
-
-    A pose that cannot be scored (no ground truth, too few poses) gets the reason string for
-    every key, which the report shows as "n/a".
-    """
-    rows: Dict[str, Dict[str, Any]] = {}
-    for split, est, note in ((INITIAL_POSES_SPLIT, poses.initial, ""), (REFINED_POSES_SPLIT, poses.refined, poses.refined_note)):
-        if poses.gt is None:
-            rows[split] = {key: "no ground-truth poses" for key in POSE_METRIC_KEYS}
-            continue
-        if note:
-            rows[split] = {key: note for key in POSE_METRIC_KEYS}
-            continue
-        unscale = 1.0 / poses.scale
-        try:
-            values: Dict[str, Any] = dict(trajectory_metrics(scale_translations(est, unscale), scale_translations(poses.gt, unscale)))
-        except ValueError as exc:
-            values = {key: str(exc) for key in POSE_METRIC_KEYS}
-        values["n"] = int(est.shape[0])
-        rows[split] = values
-    return rows
-
-
-def novel_alignment(poses: TrainPoses, enabled: bool) -> Tuple[Optional[Sim3], str]:
-    """The Sim(3) ground truth -> model frame fitted on the training latents, and a note."""
-    if not enabled:
-        return None, "alignment disabled"
-    if poses.gt is None:
-        return None, "no ground-truth training poses to align with"
-    sim3, reason = fit_gt_to_model(poses.gt, poses.refined)
-    if sim3 is None:
-        return None, f"no alignment: {reason}"
-    scale, rot, trans = sim3
-    angle = math.degrees(float(rotation_angle(rot)))
-    return sim3, f"Sim(3) GT -> refined training poses: scale {scale:.4f}, rotation {angle:.3f} deg, |t| {np.linalg.norm(trans):.4g}"
-
-
 def plot_pose_trajectories(path: Path, poses: TrainPoses) -> Optional[Path]:
     """Trajectory figure: GT, initial and refined centres, each Sim(3)-aligned onto GT (capture units)."""
     if poses.gt is None or poses.gt.shape[0] < 3:
@@ -375,11 +326,13 @@ def evaluate_group(
     grid_views: List[int] = []
     labels: List[str] = []
     cameras = group.cameras.to(model.device)
+    # ablations without the motion-mask field render an all-zero mask: nothing to score
+    renders_mask = bool(getattr(getattr(model, "config", None), "use_motion_mask", True))
     with get_progress(f"Rendering {group.name}") as progress:
         for i in progress.track(range(count), total=count):
             outputs = model.get_outputs_for_camera(cameras[i : i + 1])
             pred = outputs["rgb"].detach()
-            mask = outputs.get("mask")
+            mask = outputs.get("mask") if renders_mask else None
             row: Dict[str, np.ndarray] = {"ours": _to_numpy(pred)}
             if mask is not None:
                 row["motion mask"] = _to_numpy(mask[..., 0])
@@ -411,6 +364,19 @@ def evaluate_group(
                 labels.append(f"#{i} t={times[i]:.3f}")
     for name, values in ours.values.items():
         per_view[name] = values
+    summary = _summarise(ours, group, lpips)
+    summary.update({"n": count, "note": group.note, PER_VIEW_KEY: per_view})
+    if grid_dir is not None:
+        _save_grids(grid_dir, group.slug, grid_rows, labels, grid_views)
+    references: Dict[str, Dict[str, Any]] = {}
+    for label, reference in ((EDI_REFERENCE, edi_set), (BLURRY_REFERENCE, blurry_set)):
+        if reference.values:
+            references[label] = dict(reference.summary(), **{PER_VIEW_KEY: {"time": times.tolist(), **reference.values}})
+    return summary, references
+
+
+def _summarise(ours: MetricSet, group: ViewGroup, lpips: _Lpips) -> Dict[str, Any]:
+    """Mean/std/n of every metric of a split; a reason string for each metric without values."""
     summary: Dict[str, Any] = dict(ours.summary())
     missing = "no ground-truth images" if group.gt_images is None else None
     for key in ("psnr", "ssim"):
@@ -420,16 +386,17 @@ def evaluate_group(
     lpips.fill(summary)
     if "mask_iou" not in summary:
         summary["mask_iou"] = missing or ("no ground-truth motion masks" if group.gt_masks is None else "the model renders no motion mask")
-    summary.update({"n": count, "note": group.note, PER_VIEW_KEY: per_view})
-    if grid_dir is not None and grid_rows:
-        columns = [c for c in GRID_COLUMNS if any(c in r for r in grid_rows)]
-        for row, label, index in zip(grid_rows, labels, grid_views):
-            save_grid(grid_dir / f"{group.slug}_{index:04d}.png", [row], columns, row_labels=[label])
-        save_grid(grid_dir / f"{group.slug}_{OVERVIEW_SUFFIX}.png", grid_rows, columns, row_labels=labels)
-    references = {label: s.summary() for label, s in ((EDI_REFERENCE, edi_set), (BLURRY_REFERENCE, blurry_set)) if s.values}
-    for label in references:
-        references[label][PER_VIEW_KEY] = {"time": times.tolist(), **(edi_set if label == EDI_REFERENCE else blurry_set).values}
-    return summary, references
+    return summary
+
+
+def _save_grids(grid_dir: Path, slug: str, rows: List[Dict[str, np.ndarray]], labels: List[str], views: List[int]) -> None:
+    """One grid per selected view ({slug}_NNNN.png) and all of them stacked ({slug}_overview.png)."""
+    if not rows:
+        return
+    columns = [c for c in GRID_COLUMNS if any(c in r for r in rows)]
+    for row, label, index in zip(rows, labels, views):
+        save_grid(grid_dir / f"{slug}_{index:04d}.png", [row], columns, row_labels=[label])
+    save_grid(grid_dir / f"{slug}_{OVERVIEW_SUFFIX}.png", rows, columns, row_labels=labels)
 
 
 # ----------------------------------------------------------------------------- entry point
@@ -544,4 +511,7 @@ def evaluate_run(
     )
 
 
-__all__: List[str] = ["evaluate_run", "evaluate_pipeline", "input_views", "novel_views", "pose_rows", "ViewGroup", "TrainPoses"]
+__all__: List[str] = [
+    "evaluate_run", "evaluate_pipeline", "input_views", "novel_views", "ViewGroup",
+    "INPUT_SPLIT", "NOVEL_SPLIT", "INITIAL_POSES_SPLIT", "REFINED_POSES_SPLIT", "IMAGE_METRIC_KEYS", "POSE_METRIC_KEYS",
+]  # fmt: skip

@@ -16,7 +16,9 @@ Poses are camera-to-world matrices in nerfstudio's OpenGL convention; [N, 3, 4] 
 
 from __future__ import annotations
 
-from typing import Optional, Tuple, Union
+import math
+from dataclasses import dataclass
+from typing import Any, Dict, Optional, Tuple, Union
 
 import numpy as np
 import torch
@@ -24,13 +26,18 @@ from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
-from edygs_ns.eval.trajectory import MIN_POINTS_SIM3, apply_sim3, umeyama_sim3
+from edygs_ns.eval.trajectory import MIN_POINTS_SIM3, apply_sim3, rotation_angle, trajectory_metrics, umeyama_sim3
 
 #: A similarity transform (scale, rotation [3, 3], translation [3]) as edygs_ns.eval.trajectory uses.
 Sim3 = Tuple[float, np.ndarray, np.ndarray]
 #: Pose matrices are [N, POSE_ROWS, 4] for Cameras and [N, 4, 4] homogeneous.
 POSE_ROWS = 3
 HOMOGENEOUS_SIZE = 4
+#: Row (split) names of the pose metrics in the evaluation table.
+INITIAL_POSES_SPLIT = "poses (initial)"
+REFINED_POSES_SPLIT = "poses (refined)"
+#: Metric keys every pose row carries (edygs_ns.eval.trajectory.trajectory_metrics).
+POSE_METRIC_KEYS: Tuple[str, ...] = ("ate", "ate_frac", "rpe_t", "rpe_r", "extent")
 
 
 def to_homogeneous(c2w: Union[Tensor, np.ndarray]) -> np.ndarray:
@@ -130,3 +137,52 @@ def align_cameras(cameras: Cameras, sim3: Optional[Sim3]) -> Cameras:
     if sim3 is None:
         return with_poses(cameras, cameras.camera_to_worlds)
     return with_poses(cameras, apply_sim3(to_homogeneous(cameras.camera_to_worlds), sim3))
+
+
+@dataclass
+class TrainPoses:
+    """Training-latent poses [N, 4, 4] float64 in the dataparser frame, and the dataparser scale."""
+
+    initial: np.ndarray
+    refined: np.ndarray
+    gt: Optional[np.ndarray]
+    scale: float
+    refined_note: str = ""
+
+
+def pose_rows(poses: TrainPoses) -> Dict[str, Dict[str, Any]]:
+    """Trajectory metrics of the initial and refined poses (POSE_METRIC_KEYS), in capture units.
+
+    A pose that cannot be scored (no ground truth, too few poses) gets the reason string for
+    every key, which the report shows as "n/a".
+    """
+    rows: Dict[str, Dict[str, Any]] = {}
+    for split, est, note in ((INITIAL_POSES_SPLIT, poses.initial, ""), (REFINED_POSES_SPLIT, poses.refined, poses.refined_note)):
+        if poses.gt is None:
+            rows[split] = {key: "no ground-truth poses" for key in POSE_METRIC_KEYS}
+            continue
+        if note:
+            rows[split] = {key: note for key in POSE_METRIC_KEYS}
+            continue
+        unscale = 1.0 / poses.scale
+        try:
+            values: Dict[str, Any] = dict(trajectory_metrics(scale_translations(est, unscale), scale_translations(poses.gt, unscale)))
+        except ValueError as exc:
+            values = {key: str(exc) for key in POSE_METRIC_KEYS}
+        values["n"] = int(est.shape[0])
+        rows[split] = values
+    return rows
+
+
+def novel_alignment(poses: TrainPoses, enabled: bool) -> Tuple[Optional[Sim3], str]:
+    """The Sim(3) ground truth -> model frame fitted on the training latents, and a note."""
+    if not enabled:
+        return None, "alignment disabled"
+    if poses.gt is None:
+        return None, "no ground-truth training poses to align with"
+    sim3, reason = fit_gt_to_model(poses.gt, poses.refined)
+    if sim3 is None:
+        return None, f"no alignment: {reason}"
+    scale, rot, trans = sim3
+    angle = math.degrees(float(rotation_angle(rot)))
+    return sim3, f"Sim(3) GT -> refined training poses: scale {scale:.4f}, rotation {angle:.3f} deg, |t| {np.linalg.norm(trans):.4g}"

@@ -1,0 +1,221 @@
+"""The paper's Table 1 / Table 2 shape on the built-in synthetic scenes, one command.
+
+For each seed: write the synthetic scene (``edygs-synth``), pose it (``edygs-process``: COLMAP on
+the EDI latents, or the true poses with ``--poses given``), then train every variant with
+``ns-train`` — the blurry-input deformable-3DGS baseline (``edygs-blurry``) and the ablation
+presets (events-only, EDI-only, EDI+events, +pose, +mask = full EDyGS) — and evaluate each run
+with ``edygs-eval``'s ``evaluate_run``. Writes ``OUT/results.json`` and ``OUT/results.md``
+(input-view and novel-view PSNR/SSIM/LPIPS, mask IoU, ATE before/after, training time) with the
+command, machine and date that produced them.
+
+Usage::
+
+    python benchmarks/ablations.py --out benchmarks/results/cpu --seeds 0 1 2 --iters 1500
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Dict, List, Tuple
+
+import tyro
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from edygs_ns.eval.evaluate import evaluate_run
+from edygs_ns.scripts.process import ProcessConfig, process
+from edygs_ns.scripts.synth import SynthConfig, write_synthetic_scene
+
+#: (row label, ns-train method, ablation preset or None) in the paper's table order.
+VARIANTS: Tuple[Tuple[str, str, Any], ...] = (
+    ("blurry D3DGS", "edygs-blurry", None),
+    ("events only", "edygs", "events-only"),
+    ("EDI only", "edygs", "edi-only"),
+    ("EDI + events", "edygs", "edi-events"),
+    ("+ pose", "edygs", "edi-events-pose"),
+    ("+ mask (EDyGS)", "edygs", "full"),
+)
+INPUT_SPLIT = "input views"
+NOVEL_SPLIT = "novel views"
+
+
+@dataclass
+class AblationBenchConfig:
+    """Train and evaluate every variant on synthetic scenes."""
+
+    out: Path = Path("benchmarks/results/cpu")
+    """output folder (scenes, runs, results.json, results.md)"""
+    seeds: List[int] = field(default_factory=lambda: [0, 1, 2])
+    """synthetic scenes (seed picks textures, object motion and camera path)"""
+    iters: int = 1500
+    """training iterations per run"""
+    pose_init_fraction: float = 0.1
+    """share of the iterations in the pose-init phase"""
+    static_fraction: float = 0.3
+    """share of the iterations in the static phase"""
+    poses: str = "colmap"
+    """how scenes are posed: colmap (the paper's pipeline) or given (true poses)"""
+    variants: List[str] = field(default_factory=lambda: [v[0] for v in VARIANTS])
+    """which rows to run (labels of VARIANTS)"""
+    device: str = "auto"
+    """cpu, cuda, or auto"""
+    width: int = 128
+    """synthetic scene width"""
+    height: int = 96
+    """synthetic scene height"""
+    n_frames: int = 12
+    """blurry frames per scene"""
+    extra_train_args: List[str] = field(default_factory=list)
+    """more ns-train arguments passed to every run (e.g. a smaller deformation MLP on CPU)"""
+
+
+def _device(name: str) -> str:
+    if name != "auto":
+        return name
+    import torch
+
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def make_scene(cfg: AblationBenchConfig, seed: int) -> Path:
+    """Raw capture + processed scene for ``seed`` (reused when already there)."""
+    root = cfg.out / f"seed{seed}"
+    scene = root / "scene"
+    if (scene / "transforms.json").exists():
+        return scene
+    raw = root / "raw"
+    if not (raw / "exposures.csv").exists():
+        write_synthetic_scene(SynthConfig(output_dir=raw, seed=seed, width=cfg.width, height=cfg.height, n_frames=cfg.n_frames, overwrite=True))
+    config = ProcessConfig(output=scene, poses=cfg.poses)  # type: ignore[arg-type]
+    config.inputs.exposures = raw / "exposures.csv"
+    config.inputs.events = raw / "events.h5"
+    process(config)
+    return scene
+
+
+def train(cfg: AblationBenchConfig, scene: Path, label: str, method: str, ablation: Any, runs: Path) -> Tuple[Path, float]:
+    """ns-train one variant; returns (config.yml, wall seconds)."""
+    name = label.replace(" ", "_").replace("+", "plus").replace("(", "").replace(")", "")
+    config_path = runs / scene.parent.name / method / name / "config.yml"
+    timing = config_path.parent / "train_seconds.txt"
+    if config_path.exists() and timing.exists():
+        return config_path, float(timing.read_text())
+    pose_init = int(cfg.iters * cfg.pose_init_fraction)
+    static = int(cfg.iters * cfg.static_fraction)
+    cmd = [
+        str(Path(sys.executable).parent / "ns-train"), method, "--data", str(scene),
+        "--output-dir", str(runs), "--experiment-name", scene.parent.name, "--timestamp", name,
+        "--machine.device-type", _device(cfg.device), "--max-num-iterations", str(cfg.iters),
+        "--steps-per-save", str(cfg.iters), "--vis", "tensorboard",
+        "--pipeline.model.schedule.pose-init-iters", str(pose_init),
+        "--pipeline.model.schedule.static-iters", str(static),
+        "--pipeline.model.densify.refine-start-iter", str(max(cfg.iters // 15, 1)),
+        "--pipeline.model.densify.refine-stop-iter", str(int(cfg.iters * 0.75)),
+    ]
+    if ablation is not None:
+        cmd += ["--pipeline.model.ablation", ablation]
+    cmd += cfg.extra_train_args
+    CONSOLE.log(f"[bench] {scene.parent.name} {label}: {' '.join(cmd[1:])}")
+    start = time.time()
+    log = config_path.parent.parent / f"{name}.log"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "w") as handle:
+        result = subprocess.run(cmd, stdout=handle, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    seconds = time.time() - start
+    if result.returncode != 0:
+        raise RuntimeError(f"ns-train failed for {label} on {scene} (see {log})")
+    timing.write_text(f"{seconds:.1f}")
+    return config_path, seconds
+
+
+def _mean(entry: Any) -> Any:
+    return entry.get("mean") if isinstance(entry, dict) else entry
+
+
+def row_of(metrics: Dict[str, Any], seconds: float) -> Dict[str, Any]:
+    """The numbers of one run, flattened."""
+    (method, splits), = [(k, v) for k, v in metrics.items() if INPUT_SPLIT in v]
+    row: Dict[str, Any] = {"train_seconds": seconds}
+    for split, prefix in ((INPUT_SPLIT, "input"), (NOVEL_SPLIT, "novel")):
+        for key in ("psnr", "ssim", "lpips_alex", "mask_iou"):
+            value = _mean(splits.get(split, {}).get(key))
+            row[f"{prefix}_{key}"] = value if isinstance(value, (int, float)) else None
+    for split, prefix in (("poses (initial)", "ate_initial"), ("poses (refined)", "ate_refined")):
+        value = splits.get(split, {}).get("ate")
+        row[prefix] = value if isinstance(value, (int, float)) else None
+    return row
+
+
+def _fmt(value: Any, digits: int) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def markdown(results: Dict[str, Any]) -> str:
+    """Mean over seeds per variant."""
+    lines = [
+        "| Variant | in PSNR↑ | in SSIM↑ | novel PSNR↑ | novel SSIM↑ | LPIPS(alex)↓ | mask IoU↑ | ATE init | ATE refined | train s |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for label, rows in results["rows"].items():
+        def mean(key: str) -> Any:
+            values = [r[key] for r in rows if r.get(key) is not None]
+            return sum(values) / len(values) if values else None
+
+        lpips = mean("input_lpips_alex")
+        lines.append(
+            f"| {label} | {_fmt(mean('input_psnr'), 2)} | {_fmt(mean('input_ssim'), 4)} | {_fmt(mean('novel_psnr'), 2)} | "
+            f"{_fmt(mean('novel_ssim'), 4)} | {'n/a (weights missing)' if lpips is None else f'{lpips:.4f}'} | "
+            f"{_fmt(mean('input_mask_iou'), 3)} | {_fmt(mean('ate_initial'), 4)} | {_fmt(mean('ate_refined'), 4)} | {_fmt(mean('train_seconds'), 0)} |"
+        )
+    refs = results.get("references", {})
+    for label, values in refs.items():
+        lines.append(f"| {label} (image itself) | {_fmt(values.get('psnr'), 2)} | {_fmt(values.get('ssim'), 4)} | | | | | | | |")
+    return "\n".join(lines)
+
+
+def main(cfg: AblationBenchConfig) -> Dict[str, Any]:
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    runs = cfg.out / "runs"
+    chosen = [v for v in VARIANTS if v[0] in cfg.variants]
+    results: Dict[str, Any] = {
+        "command": " ".join([Path(sys.argv[0]).name] + sys.argv[1:]),
+        "machine": f"{platform.node()} {platform.processor() or platform.machine()}, {os.cpu_count()} cores, device {_device(cfg.device)}",
+        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "config": {k: str(v) for k, v in vars(cfg).items()},
+        "rows": {label: [] for label, _, _ in chosen},
+        "references": {},
+    }
+    ref_values: Dict[str, List[Tuple[float, float]]] = {}
+    for seed in cfg.seeds:
+        scene = make_scene(cfg, seed)
+        for label, method, ablation in chosen:
+            config_path, seconds = train(cfg, scene, label, method, ablation, runs)
+            metrics = evaluate_run(config_path, config_path.parent / "eval", max_grids=2, method=label)
+            row = row_of(metrics, seconds)
+            row["seed"] = seed
+            results["rows"][label].append(row)
+            for ref_label in ("EDI latent", "blurry input"):
+                ref = metrics.get(ref_label, {}).get(INPUT_SPLIT)
+                if ref and method == "edygs" and ablation == "full":
+                    ref_values.setdefault(ref_label, []).append((_mean(ref["psnr"]), _mean(ref["ssim"])))
+            (cfg.out / "results.json").write_text(json.dumps(results, indent=2))
+    for ref_label, pairs in ref_values.items():
+        results["references"][ref_label] = {"psnr": sum(p for p, _ in pairs) / len(pairs), "ssim": sum(s for _, s in pairs) / len(pairs)}
+    table = markdown(results)
+    (cfg.out / "results.json").write_text(json.dumps(results, indent=2))
+    (cfg.out / "results.md").write_text(
+        f"Command: `{results['command']}`  \nMachine: {results['machine']}  \nDate: {results['date']}\n\n{table}\n"
+    )
+    CONSOLE.print(table)
+    return results
+
+
+if __name__ == "__main__":
+    main(tyro.cli(AblationBenchConfig))
