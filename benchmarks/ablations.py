@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import shlex
 import subprocess
 import sys
 import time
@@ -72,8 +73,9 @@ class AblationBenchConfig:
     """synthetic scene height"""
     n_frames: int = 12
     """blurry frames per scene"""
-    extra_train_args: List[str] = field(default_factory=list)
-    """more ns-train arguments passed to every run (e.g. a smaller deformation MLP on CPU)"""
+    extra_train_args: str = ""
+    """more ns-train arguments passed to every run, one quoted string (e.g. a smaller deformation
+    MLP on CPU: "--pipeline.model.deformation.width 64")"""
 
 
 def _device(name: str) -> str:
@@ -121,7 +123,7 @@ def train(cfg: AblationBenchConfig, scene: Path, label: str, method: str, ablati
     ]
     if ablation is not None:
         cmd += ["--pipeline.model.ablation", ablation]
-    cmd += cfg.extra_train_args
+    cmd += shlex.split(cfg.extra_train_args)
     CONSOLE.log(f"[bench] {scene.parent.name} {label}: {' '.join(cmd[1:])}")
     start = time.time()
     log = config_path.parent.parent / f"{name}.log"

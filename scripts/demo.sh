@@ -2,18 +2,19 @@
 # End to end on the built-in synthetic scene: set up .venv, generate a blurry video + events,
 # EDI + COLMAP (edygs-process), train EDyGS (ns-train edygs), evaluate (edygs-eval) and render.
 # Usage: bash scripts/demo.sh [OUT_DIR]     (default: demo_data/)
-# Environment: DEMO_ITERS (training iterations, default 2000), DEMO_SEED (scene seed, default 0).
+# Environment: DEMO_ITERS (training iterations, default 1000), DEMO_SEED (scene seed, default 0).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup_env.sh
 export PATH="$PWD/.venv/bin:$PATH"
 export OMP_WAIT_POLICY="${OMP_WAIT_POLICY:-PASSIVE}"
 out="${1:-demo_data}"
-iters="${DEMO_ITERS:-2000}"
+iters="${DEMO_ITERS:-1000}"
 seed="${DEMO_SEED:-0}"
 device="cpu"
 if python -c "import torch,sys; sys.exit(0 if torch.cuda.is_available() else 1)"; then device="cuda"; fi
 pose_init=$(( iters / 10 )); static=$(( iters * 3 / 10 ))
+refine_start=$(( iters / 15 )); refine_stop=$(( iters * 3 / 4 ))
 
 echo "== 1/5 synthetic scene -> $out/raw"
 edygs-synth --output-dir "$out/raw" --seed "$seed" --overwrite
@@ -23,10 +24,12 @@ echo "== 3/5 ns-train edygs ($iters iterations on $device)"
 ns-train edygs --data "$out/scene" --output-dir "$out/outputs" --timestamp demo \
   --machine.device-type "$device" --max-num-iterations "$iters" \
   --pipeline.model.schedule.pose-init-iters "$pose_init" --pipeline.model.schedule.static-iters "$static" \
+  --pipeline.model.densify.refine-start-iter "$refine_start" --pipeline.model.densify.refine-stop-iter "$refine_stop" \
   --steps-per-save "$iters" --vis tensorboard
 config="$out/outputs/scene/edygs/demo/config.yml"
 echo "== 4/5 edygs-eval"
 edygs-eval --load-config "$config" --output "$out/eval"
-echo "== 5/5 render a time sweep"
-edygs-render-sweep --load-config "$config" --output "$out/renders/sweep.mp4" || echo "(render sweep unavailable)"
-echo "done: metrics in $out/eval/metrics.md"
+echo "== 5/5 render a time sweep (bullet time) and export the Gaussians at t = 0.5"
+edygs-render-sweep --load-config "$config" --output-dir "$out/renders/time_sweep" --rendered-output-names rgb mask rgb_static depth
+edygs-export --load-config "$config" --output-dir "$out/export" --time 0.5
+echo "done: metrics in $out/eval/metrics.md, grids in $out/eval/grids/, video in $out/renders/time_sweep/"
