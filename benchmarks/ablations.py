@@ -141,9 +141,9 @@ def _mean(entry: Any) -> Any:
     return entry.get("mean") if isinstance(entry, dict) else entry
 
 
-def row_of(metrics: Dict[str, Any], seconds: float) -> Dict[str, Any]:
-    """The numbers of one run, flattened."""
-    (method, splits), = [(k, v) for k, v in metrics.items() if INPUT_SPLIT in v]
+def row_of(metrics: Dict[str, Any], label: str, seconds: float) -> Dict[str, Any]:
+    """The numbers of run ``label`` (its rows in evaluate_run's metrics), flattened."""
+    splits = metrics[label]
     row: Dict[str, Any] = {"train_seconds": seconds}
     for split, prefix in ((INPUT_SPLIT, "input"), (NOVEL_SPLIT, "novel")):
         for key in ("psnr", "ssim", "lpips_alex", "mask_iou"):
@@ -200,7 +200,7 @@ def main(cfg: AblationBenchConfig) -> Dict[str, Any]:
         for label, method, ablation in chosen:
             config_path, seconds = train(cfg, scene, label, method, ablation, runs)
             metrics = evaluate_run(config_path, config_path.parent / "eval", max_grids=2, method=label)
-            row = row_of(metrics, seconds)
+            row = row_of(metrics, label, seconds)
             row["seed"] = seed
             results["rows"][label].append(row)
             for ref_label in ("EDI latent", "blurry input"):
