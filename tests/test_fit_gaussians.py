@@ -19,13 +19,7 @@ ITERATIONS = 300
 LEARNING_RATES = {"means": 0.02, "scales": 0.04, "quats": 0.04, "opacities": 0.1, "colors": 0.1, "mask_logit": 0.1}
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Many tiny ops: one thread avoids OpenMP spin-waits when other processes share the cores."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def cameras() -> Dict[str, Tensor]:

@@ -19,13 +19,7 @@ PARAM_NAMES = ("means", "quats", "scales", "opacities", "features", "viewmats")
 WALL_OPACITY = 0.99999  # above ALPHA_MAX: the clamp happens at the wall centres
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Many tiny ops: one thread avoids OpenMP spin-waits when other processes share the cores."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def look_at_viewmat(eye: Tensor, target: Tensor) -> Tensor:

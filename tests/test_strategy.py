@@ -17,13 +17,7 @@ REFINE_STEP = 600
 SPLIT_SHRINK = 1.6  # gsplat's split divides scales by this
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Many tiny ops: one thread avoids OpenMP spin-waits when other processes share the cores."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def make_params() -> Dict[str, torch.nn.Parameter]:
