@@ -3,10 +3,17 @@
 # Usage: bash scripts/setup_env.sh [test]
 set -euo pipefail
 cd "$(dirname "$0")/.."
+if [ "$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi
+apt_install() {  # apt_install PACKAGE...: Debian packages, quietly
+  $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "$@" >/dev/null
+}
 if ! command -v ffmpeg >/dev/null 2>&1; then
   echo "[setup] installing ffmpeg (ns-render needs it)"
-  if [ "$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi
-  $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq ffmpeg >/dev/null
+  apt_install ffmpeg
+fi
+if [ "${1:-}" = "test" ] && ! command -v chromium >/dev/null 2>&1; then
+  echo "[setup] installing chromium (the viewer test drives ns-viewer in a headless browser)"
+  apt_install chromium || echo "[setup] chromium could not be installed: the browser test will be skipped"
 fi
 if [ ! -x .venv/bin/python ]; then
   echo "[setup] creating .venv"

@@ -38,6 +38,10 @@ HEIGHT, WIDTH = 24, 32
 #: Training steps of the tiny run and its phase lengths (each phase is visited).
 TRAIN_STEPS = 6
 POSE_INIT_ITERS, STATIC_ITERS = 2, 2
+#: Mask logit (m ~ 0.95, above the model's deformation threshold) given to Gaussians that must deform.
+DYNAMIC_LOGIT = 3.0
+#: Std of the random weights put into the deformation's position head to make renders time-dependent.
+HEAD_WEIGHT_STD = 2.0
 
 
 def train_tiny_run(root: Path, steps: int = TRAIN_STEPS) -> Path:
@@ -174,8 +178,9 @@ def test_time_sweep_renders_one_viewpoint_over_time(run_config, tmp_path):
 
     _, pipeline, _, _ = eval_setup(run_config, test_mode="test")
     gen = torch.Generator().manual_seed(0)
-    with torch.no_grad():  # a time-dependent deformation (two training steps leave the heads at zero)
-        pipeline.model.deformation.head_xyz.weight.normal_(0.0, 2.0, generator=gen)
+    with torch.no_grad():  # a time-dependent deformation (training leaves the heads at zero) on every Gaussian
+        pipeline.model.deformation.head_xyz.weight.normal_(0.0, HEAD_WEIGHT_STD, generator=gen)
+        pipeline.model.gauss_params["mask_logit"].fill_(DYNAMIC_LOGIT)
     has_ffmpeg = shutil.which("ffmpeg") is not None
     names = ("rgb", "mask", "depth")
     frames, video = render_time_sweep(pipeline, tmp_path / "sweep", camera_index=4, times=[0.0, 0.0, 1.0], output_names=names,

@@ -21,6 +21,9 @@ N_STATIC = 10
 #: Std of the random deformation-head weights and the head bias set in the test.
 HEAD_WEIGHT_STD = 0.5
 HEAD_BIAS = 0.05
+#: Mask logits of the static Gaussians (m ~ 0) and of the dynamic ones (m ~ 0.95, above the
+#: model's deform_mask_threshold, so the deformation applies to them).
+STATIC_LOGIT, DYNAMIC_LOGIT = -10.0, 3.0
 
 
 def _model():
@@ -38,7 +41,9 @@ def _model():
             head.weight.normal_(0.0, HEAD_WEIGHT_STD, generator=gen)
             head.bias.fill_(HEAD_BIAS)
         model.gauss_params["features_rest"].normal_(generator=gen)
-        model.gauss_params["mask_logit"][:N_STATIC] = -10.0  # m ~ 0: below the deformation threshold
+        model.gauss_params["mask_logit"][:N_STATIC] = STATIC_LOGIT
+        model.gauss_params["mask_logit"][N_STATIC:] = DYNAMIC_LOGIT
+    assert torch.sigmoid(torch.tensor(DYNAMIC_LOGIT)) > model.config.deform_mask_threshold
     model.eval()
     return model
 

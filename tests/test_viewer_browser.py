@@ -48,6 +48,8 @@ EXPECTED_OUTPUTS = ("mask", "rgb_static", "depth")
 TRAIN_STEPS = 2
 #: Std of the random weights put into the deformation's position head, so that renders depend on time.
 HEAD_WEIGHT_STD = 2.0
+#: Mask logit given to every Gaussian (m ~ 0.95, above the model's deformation threshold).
+DYNAMIC_LOGIT = 3.0
 #: Mouse-wheel steps (and delta, pixels) that zoom the viewer camera out until the scene is in view.
 ZOOM_OUT_STEPS = 15
 ZOOM_DELTA_PX = 300.0
@@ -156,6 +158,8 @@ def _make_time_visible(config: Path) -> None:
     assert keys, f"{checkpoint} holds no deformation head"
     for key in keys:
         state["pipeline"][key] = torch.randn(state["pipeline"][key].shape, generator=generator) * HEAD_WEIGHT_STD
+    for key in [k for k in state["pipeline"] if k.endswith("gauss_params.mask_logit")]:
+        state["pipeline"][key] = torch.full_like(state["pipeline"][key], DYNAMIC_LOGIT)  # deformed everywhere
     torch.save(state, checkpoint)
 
 

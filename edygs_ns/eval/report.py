@@ -46,7 +46,7 @@ JSON_INDENT = 2
 DEFAULT_NOTES: Tuple[str, ...] = (
     "ATE: RMSE of camera centres after Sim(3) (Umeyama) alignment; RPE over consecutive frames "
     "after the same alignment. ATE and RPE_t in ground-truth units, RPE_r in degrees.",
-    "SSIM: 11x11 Gaussian window, sigma 1.5, valid region. LPIPS on images in [0, 1].",
+    "SSIM: 11x11 Gaussian window, sigma 1.5, zero-padded borders (as the 3DGS metric scripts). LPIPS on images in [0, 1].",
 )
 
 

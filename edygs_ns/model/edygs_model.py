@@ -332,7 +332,11 @@ class EdygsModel(Model):
         outputs = self.render_cameras(camera)
         if camera.shape[0] == 1:
             outputs = {k: v[0] for k, v in outputs.items()}
-        outputs["background"] = torch.ones(3, device=self.device) if self.config.background_color == "white" else torch.zeros(3, device=self.device)
+        background = torch.ones(3, device=self.device) if self.config.background_color == "white" else torch.zeros(3, device=self.device)
+        if camera.shape[0] == 1 and not self.training:
+            # the viewer lists every output as an image: give the background one too
+            background = background.expand(*outputs["rgb"].shape[:2], 3)
+        outputs["background"] = background
         return outputs  # type: ignore[return-value]
 
     @torch.no_grad()
