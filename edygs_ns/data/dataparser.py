@@ -143,8 +143,8 @@ def _central_latents(k: int) -> Tuple[int, ...]:
 def _cameras(intr: Intrinsics, c2w: torch.Tensor, times: np.ndarray) -> Cameras:
     return Cameras(
         camera_to_worlds=c2w,
-        fx=float(intr.fx),
-        fy=float(intr.fy),
+        fx=float(intr.fl_x),
+        fy=float(intr.fl_y),
         cx=float(intr.cx),
         cy=float(intr.cy),
         width=int(intr.width),

@@ -37,6 +37,7 @@ from edygs_ns.events.accumulate import latent_times_us
 from edygs_ns.events.exposures import Exposure, read_exposures
 from edygs_ns.events.readers import ArrayEventSource, EventSource, open_event_source, read_aedat4
 from edygs_ns.events.types import EventArray
+from edygs_ns.data.layouts.common import Intrinsics
 
 #: Largest value of an 8-bit pixel.
 UINT8_MAX = 255
@@ -107,27 +108,6 @@ class InputConfig:
     """Integer factor dividing the frame size and the event coordinates (counts are area-averaged)."""
     alpha_background: Literal["white", "black"] = "white"
     """Background that RGBA frames are composited over (E2NeRF's Blender frames use white)."""
-
-
-@dataclass(frozen=True)
-class Intrinsics:
-    """Pinhole intrinsics in pixels (pixel centres at integer + 0.5, as COLMAP and nerfstudio use)."""
-
-    width: int
-    height: int
-    fl_x: float
-    fl_y: float
-    cx: float
-    cy: float
-
-    def resized(self, width: int, height: int) -> "Intrinsics":
-        """The same camera for images resized to width x height pixels."""
-        sx, sy = width / self.width, height / self.height
-        return Intrinsics(width, height, self.fl_x * sx, self.fl_y * sy, self.cx * sx, self.cy * sy)
-
-    def matrix(self) -> np.ndarray:
-        """[3, 3] float64 calibration matrix K."""
-        return np.array([[self.fl_x, 0.0, self.cx], [0.0, self.fl_y, self.cy], [0.0, 0.0, 1.0]])
 
 
 @dataclass

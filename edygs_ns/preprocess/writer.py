@@ -21,7 +21,8 @@ import numpy as np
 
 from edygs_ns.events.exposures import Exposure, write_exposures
 from edygs_ns.preprocess.colmap import CameraEstimate
-from edygs_ns.preprocess.inputs import Intrinsics, interpolate_poses
+from edygs_ns.data.layouts.common import Intrinsics
+from edygs_ns.preprocess.inputs import interpolate_poses
 
 #: Folder names and files of the processed layout.
 LATENTS_DIR = "latents"

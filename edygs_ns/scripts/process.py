@@ -39,7 +39,8 @@ from edygs_ns.events.accumulate import exposure_bins, latent_times_us
 from edygs_ns.events.edi import EdiConfig, edi_from_frame
 from edygs_ns.events.exposures import Exposure, read_exposures
 from edygs_ns.preprocess.colmap import ColmapConfig, ColmapResult, registration_message, run_colmap
-from edygs_ns.preprocess.inputs import Capture, InputConfig, Intrinsics, load_capture
+from edygs_ns.data.layouts.common import Intrinsics
+from edygs_ns.preprocess.inputs import Capture, InputConfig, load_capture
 from edygs_ns.preprocess.steps import StepRunner, file_signature, fingerprint, progress_bar
 from edygs_ns.preprocess.writer import (
     REPORT_NAME,

@@ -30,23 +30,32 @@ UINT8_MAX = 255
 
 @dataclass(frozen=True)
 class Intrinsics:
-    """A pinhole camera without distortion.
+    """A pinhole camera without distortion (pixel centres at integer + 0.5, as COLMAP and nerfstudio).
 
     Attributes:
         width: image width in pixels.
         height: image height in pixels.
-        fx: focal length along x in pixels.
-        fy: focal length along y in pixels.
+        fl_x: focal length along x in pixels.
+        fl_y: focal length along y in pixels.
         cx: principal point x in pixels.
         cy: principal point y in pixels.
     """
 
     width: int
     height: int
-    fx: float
-    fy: float
+    fl_x: float
+    fl_y: float
     cx: float
     cy: float
+
+    def resized(self, width: int, height: int) -> "Intrinsics":
+        """The same camera for images resized to width x height pixels."""
+        sx, sy = width / self.width, height / self.height
+        return Intrinsics(width, height, self.fl_x * sx, self.fl_y * sy, self.cx * sx, self.cy * sy)
+
+    def matrix(self) -> np.ndarray:
+        """[3, 3] float64 calibration matrix K."""
+        return np.array([[self.fl_x, 0.0, self.cx], [0.0, self.fl_y, self.cy], [0.0, 0.0, 1.0]])
 
 
 @dataclass

@@ -119,7 +119,7 @@ def read_e2nerf_real(
     record = SceneRecord(
         root=root,
         layout="e2nerf-real",
-        intrinsics=Intrinsics(width=width, height=height, fx=focal, fy=focal, cx=width / 2.0, cy=height / 2.0),
+        intrinsics=Intrinsics(width=width, height=height, fl_x=focal, fl_y=focal, cx=width / 2.0, cy=height / 2.0),
         k=k,
         theta=edi.theta,
         color_space=edi.color_space,

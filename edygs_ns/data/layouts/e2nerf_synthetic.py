@@ -112,7 +112,7 @@ def _latent_poses(matrix, k: int, source: Path, frame: int) -> np.ndarray:
 def _blender_intrinsics(meta, source: Path, height: int, width: int) -> Intrinsics:
     angle = float(require_key(meta, "camera_angle_x", source))
     focal = 0.5 * width / math.tan(0.5 * angle)
-    return Intrinsics(width=width, height=height, fx=focal, fy=focal, cx=width / 2.0, cy=height / 2.0)
+    return Intrinsics(width=width, height=height, fl_x=focal, fl_y=focal, cx=width / 2.0, cy=height / 2.0)
 
 
 def _numbered_images(folder: Path, source: Path, frames: List):

@@ -66,8 +66,8 @@ def _intrinsics(meta: Dict[str, Any], source: Path, fallback: Optional[Intrinsic
     return Intrinsics(
         width=width,
         height=height,
-        fx=fx,
-        fy=float(meta.get("fl_y", fx)),
+        fl_x=fx,
+        fl_y=float(meta.get("fl_y", fx)),
         cx=float(meta.get("cx", width / 2.0)),
         cy=float(meta.get("cy", height / 2.0)),
     )
