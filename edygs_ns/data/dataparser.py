@@ -52,12 +52,12 @@ UINT8_MAX = 255
 
 @dataclass
 class EdygsDataParserConfig(DataParserConfig):
-    """Reads EDyGS scenes: our processed layout and E2NeRF's synthetic and real layouts."""
+    """Reads EDyGS scenes: our processed layout, E2NeRF's synthetic and real layouts, EvDeblurNeRF scenes."""
 
     _target: Type = field(default_factory=lambda: EdygsDataParser)
     data: Path = Path("data/edygs/scene")
     """Scene folder."""
-    layout: Literal["auto", "processed", "e2nerf-synthetic", "e2nerf-real"] = "auto"
+    layout: Literal["auto", "processed", "e2nerf-synthetic", "e2nerf-real", "evdeblurnerf"] = "auto"
     """Folder layout; "auto" detects it from the files present."""
     image_source: Literal["latent", "blurry"] = "latent"
     """Training images: the EDI latents (one camera per latent), or the blurry inputs (one camera
@@ -83,11 +83,15 @@ class EdygsDataParserConfig(DataParserConfig):
     random_seed: int = 0
     """Seed of those random points."""
     theta: Optional[float] = None
-    """Contrast threshold override; None uses the scene's value (0.2 for E2NeRF data)."""
+    """Contrast threshold override; None uses the scene's value (0.2 for E2NeRF and EvDeblurNeRF data;
+    EvDeblurNeRF's own CDAVIS configs use 0.25)."""
     color_space: Optional[Literal["linear", "srgb"]] = None
-    """Pixel encoding override; None uses the scene's value ("linear" for E2NeRF data)."""
+    """Pixel encoding override; None uses the scene's value ("linear" for E2NeRF and EvDeblurNeRF data)."""
     edi_clip_max: float = 1.0
-    """Clip (linear intensity) of EDI latents computed for E2NeRF layouts."""
+    """Clip (linear intensity) of EDI latents computed for E2NeRF and EvDeblurNeRF layouts."""
+    k: Optional[int] = None
+    """Latents per blurry frame where the layout leaves it open (EvDeblurNeRF: raw events are binned
+    into k - 1 bins; None: 5). Other layouts fix k themselves."""
 
 
 @dataclass
@@ -173,7 +177,8 @@ class EdygsDataParser(DataParser):
         if self._record is None:
             cfg = self.config
             self._record = read_scene(
-                Path(cfg.data), cfg.layout, theta=cfg.theta, color_space=cfg.color_space, clip_max=cfg.edi_clip_max
+                Path(cfg.data), cfg.layout, theta=cfg.theta, color_space=cfg.color_space, clip_max=cfg.edi_clip_max,
+                k=cfg.k,
             )
             self._transform = _fit_transform(self._record, cfg)
             r = self._record

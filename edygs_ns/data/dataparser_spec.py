@@ -12,5 +12,5 @@ from edygs_ns.data.dataparser import EdygsDataParserConfig
 
 edygs_dataparser = DataParserSpecification(
     config=EdygsDataParserConfig(),
-    description="EDyGS scenes: blurry frames + events (processed layout, E2NeRF synthetic and real)",
+    description="EDyGS scenes: blurry frames + events (processed layout, E2NeRF synthetic and real, EvDeblurNeRF)",
 )

@@ -20,6 +20,11 @@ from edygs_ns.events.types import EventArray
 PROGRESS_MIN_EXPOSURES = 50
 #: Fewest latent frames per exposure (one bin needs two latents).
 MIN_LATENTS = 2
+#: Exposures may start before the first event or end after the last one by this fraction of
+#: one event bin (events are discrete; a quiet instant at the edge is not a gap).
+COVERAGE_TOLERANCE_BINS = 1.0
+#: What check_event_coverage suggests by default when an exposure is not covered.
+COVERAGE_HINT = "check the event file and the exposure times"
 
 
 def _pixel_index(events: EventArray) -> np.ndarray:
@@ -141,3 +146,33 @@ def exposure_bins(
                 )
             out[i] = bin_events(window, times)
     return out
+
+
+def check_event_coverage(
+    source: EventSource, exposures: Sequence[Exposure], names: Sequence[str], k: int, hint: str = COVERAGE_HINT
+) -> None:
+    """Raise ValueError naming the first frame whose exposure the events do not cover.
+
+    An exposure may overhang the first/last event by COVERAGE_TOLERANCE_BINS event bins.
+
+    Args:
+        source: the events.
+        exposures: the exposures to check (µs on the event clock).
+        names: one name per exposure (the frame's file), quoted in the message.
+        k: latents per exposure (sets the bin length, hence the tolerance).
+        hint: what the message suggests checking.
+
+    Raises:
+        ValueError: the source holds no events, or an exposure reaches past the events.
+    """
+    try:
+        t_first, t_last = source.t_range()
+    except ValueError as err:
+        raise ValueError(f"{source.name}: holds no events, so no exposure is covered") from err
+    for exposure, name in zip(exposures, names):
+        tolerance = COVERAGE_TOLERANCE_BINS * (exposure.end_us - exposure.start_us) / (k - 1)
+        if exposure.start_us < t_first - tolerance or exposure.end_us > t_last + tolerance:
+            raise ValueError(
+                f"{source.name}: events cover [{t_first}, {t_last}] µs but frame {exposure.frame} ({name}) is exposed "
+                f"over [{exposure.start_us}, {exposure.end_us}] µs; {hint}"
+            )

@@ -3,9 +3,11 @@
 Formats (dispatch on the file suffix):
 
 - HDF5 (``.h5``, ``.hdf5``): datasets ``x, y, t, p`` at the root (EvDeblurNeRF style and our
-  own writer, t in µs) or in the group ``events/`` (DSEC style) with a root ``t_offset``
-  (dataset or attribute, µs) added to t. Sensor size from the attribute ``sensor_size`` =
-  (height, width) on the root or the group, or attributes ``height`` and ``width``.
+  own writer) or in the group ``events/`` (DSEC style) with a root ``t_offset`` (dataset or
+  attribute, µs) added to t. Sensor size from the attribute ``sensor_size`` = (height, width)
+  on the root or the group, or attributes ``height`` and ``width``. t is in µs unless
+  :class:`H5EventSource` is told otherwise (EvDeblurNeRF's Blender scenes store ns), and
+  floating-point (rectified) coordinates can be rounded to the nearest pixel there.
 - NumPy (``.npz``: arrays x, y, t, p and optionally sensor_size; ``.npy``: a structured array
   with fields x, y, t, p, or a pickled dict of those arrays). t in µs.
 - Text (``.txt``, ``.csv``): one ``t x y p`` per line, t in seconds, p in {0, 1}; ``#`` lines
@@ -59,6 +61,8 @@ US_PER_SECOND = 1_000_000
 TXT_SENSOR_SIZE_PATTERN = re.compile(r"sensor_size[^:]*:\s*(\d+)\s+(\d+)")
 #: Columns of a text event line: t x y p.
 TXT_COLUMNS = 4
+#: Timestamp units an HDF5 file may use, as ticks per microsecond.
+TICKS_PER_US = {"us": 1, "ns": 1000}
 #: aedat frame formats and the number of channels kept (RGBA drops alpha).
 AEDAT_FRAME_FORMATS = {"L": 1, "RGB": 3, "RGBA": 3}
 
@@ -178,13 +182,41 @@ def _first_index_at_or_after(
     return lo + int(np.searchsorted(block(lo, hi), value, side="left"))
 
 
-class _ColumnEventSource(EventSource):
-    """Windowed reads from four sorted on-disk columns (HDF5 datasets or memory-mapped fields)."""
+def _floor_ticks(values: np.ndarray) -> np.ndarray:
+    """Floating-point timestamps floored to whole ticks; integer ones untouched (no float round trip)."""
+    return np.floor(values) if values.dtype.kind == "f" else values
 
-    def __init__(self, name: str, sensor_size: SensorSize, columns: Dict[str, Any], t_offset_us: int) -> None:
+
+class _ColumnEventSource(EventSource):
+    """Windowed reads from four sorted on-disk columns (HDF5 datasets or memory-mapped fields).
+
+    Args:
+        name: the file, for messages.
+        sensor_size: (height, width).
+        columns: x, y, t, p column objects (sliceable, sorted by t).
+        t_offset_us: µs added to every timestamp (after unit conversion).
+        time_unit: unit of the stored t ("us" or "ns"); ns are floored to µs.
+        round_coordinates: round x, y to the nearest pixel and drop events that land outside
+            the sensor (rectified, floating-point coordinates); otherwise coordinates must be
+            whole numbers inside the sensor.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        sensor_size: SensorSize,
+        columns: Dict[str, Any],
+        t_offset_us: int,
+        time_unit: str = "us",
+        round_coordinates: bool = False,
+    ) -> None:
         super().__init__(name, sensor_size)
+        if time_unit not in TICKS_PER_US:
+            raise ValueError(f"{name}: unknown time unit {time_unit!r}; expected one of {sorted(TICKS_PER_US)}")
         self._columns = columns
         self._t_offset = int(t_offset_us)
+        self._ticks = TICKS_PER_US[time_unit]
+        self._round = bool(round_coordinates)
         lengths = {k: int(v.shape[0]) for k, v in columns.items()}
         if len(set(lengths.values())) != 1:
             raise ValueError(f"{name}: event fields have mismatched lengths {lengths}")
@@ -194,23 +226,36 @@ class _ColumnEventSource(EventSource):
         return self._n
 
     def _t_at(self, i: int) -> int:
-        return int(self._columns["t"][i])
+        return int(_floor_ticks(np.asarray(self._columns["t"][i])))
 
     def _t_block(self, i0: int, i1: int) -> np.ndarray:
-        return np.asarray(self._columns["t"][i0:i1]).astype(np.int64)
+        return _floor_ticks(np.asarray(self._columns["t"][i0:i1])).astype(np.int64)
 
     def _index(self, t_us: int) -> int:
-        return _first_index_at_or_after(int(t_us) - self._t_offset, self._n, self._t_at, self._t_block)
+        # Stored ticks t floor to µs u (u = t // ticks), so u >= T exactly when t >= T * ticks.
+        ticks = (int(t_us) - self._t_offset) * self._ticks
+        return _first_index_at_or_after(ticks, self._n, self._t_at, self._t_block)
 
     def t_range(self) -> Tuple[int, int]:
         if self._n == 0:
             raise self._no_events()
-        return self._t_at(0) + self._t_offset, self._t_at(self._n - 1) + self._t_offset
+        first, last = self._t_at(0) // self._ticks, self._t_at(self._n - 1) // self._ticks
+        return first + self._t_offset, last + self._t_offset
 
     def _read(self, i0: int, i1: int, source: str) -> EventArray:
         raw = {k: np.asarray(v[i0:i1]) for k, v in self._columns.items()}
-        t = raw["t"].astype(np.int64) + self._t_offset
-        return validate_events(raw["x"], raw["y"], t, raw["p"], self.sensor_size, source)
+        t = _floor_ticks(raw["t"])  # NaN stays NaN: validate_events names it
+        if self._ticks != 1:
+            t = np.floor(t / self._ticks) if t.dtype.kind == "f" else t.astype(np.int64) // self._ticks
+        t = t + self._t_offset if t.dtype.kind == "f" else t.astype(np.int64) + self._t_offset
+        x, y, p = raw["x"], raw["y"], raw["p"]
+        if self._round:
+            x, y = np.rint(x), np.rint(y)
+            height, width = self.sensor_size
+            inside = (x >= 0) & (x < width) & (y >= 0) & (y < height)
+            if not inside.all():
+                x, y, t, p = x[inside], y[inside], t[inside], p[inside]
+        return validate_events(x, y, t, p, self.sensor_size, source)
 
     def window(self, t_start_us: int, t_end_us: int) -> EventArray:
         if t_end_us <= t_start_us:
@@ -223,9 +268,19 @@ class _ColumnEventSource(EventSource):
 
 
 class H5EventSource(_ColumnEventSource):
-    """Windowed reads from an HDF5 event file (root datasets or DSEC ``events/`` group)."""
+    """Windowed reads from an HDF5 event file (root datasets or DSEC ``events/`` group).
 
-    def __init__(self, path: Path, sensor_size: Optional[Sequence[int]], t_offset_us: Optional[int]) -> None:
+    ``time_unit`` and ``round_coordinates`` are as for the column source (see its docstring).
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        sensor_size: Optional[Sequence[int]],
+        t_offset_us: Optional[int],
+        time_unit: str = "us",
+        round_coordinates: bool = False,
+    ) -> None:
         import h5py
 
         try:
@@ -241,7 +296,10 @@ class H5EventSource(_ColumnEventSource):
             for k, dataset in columns.items():
                 if dataset.ndim != 1:
                     raise ValueError(f"{path}: dataset {dataset.name!r} must be one-dimensional, got {dataset.shape}")
-            super().__init__(str(path), _resolve_sensor_size(file_size, sensor_size, path), columns, t_offset_us)
+            super().__init__(
+                str(path), _resolve_sensor_size(file_size, sensor_size, path), columns, t_offset_us,
+                time_unit=time_unit, round_coordinates=round_coordinates,
+            )
         except Exception:
             self._file.close()
             raise

@@ -8,14 +8,20 @@ Input forms:
   frames, and events in any format :mod:`edygs_ns.events.readers` reads. When the CSV sits in a
   raw capture written by ``edygs-synth``, its ``gt/transforms.json`` gives the poses for
   ``--poses given`` and ``gt/`` is copied into the processed scene.
-- (c) ``--e2nerf DIR``: an E2NeRF scene, synthetic (Blender style: ``transform_train.json``,
-  ``train/r_*.png``, ``events.pt``) or real (LLFF style: ``poses_bounds.npy``, ``images/``,
-  ``events.pt``). Its events are already binned (4 bins per frame), so k - 1 must divide 4, and
-  the format stores no timestamps: exposures are placed on a nominal clock
-  (:data:`E2NERF_FRAME_PERIOD_US`, :data:`E2NERF_EXPOSURE_US`), which only sets the
-  normalised latent times.
+- (c) a published benchmark scene to re-pose (or keep its poses with ``--poses given``):
 
-EvDeblurNeRF folders are not read yet (left for later): convert them to form (b).
+  - ``--e2nerf DIR``: an E2NeRF scene, synthetic (Blender style: ``transform_train.json``,
+    ``train/r_*.png``, ``events.pt``) or real (LLFF style: ``poses_bounds.npy``, ``images/``,
+    ``events.pt``). Its events are already binned (4 bins per frame), so k - 1 must divide 4,
+    and the format stores no timestamps: exposures are placed on a nominal clock
+    (:data:`E2NERF_FRAME_PERIOD_US`, :data:`E2NERF_EXPOSURE_US`), which only sets the
+    normalised latent times.
+  - ``--evdeblurnerf DIR``: an EvDeblurNeRF scene (``images_1/`` with ``timestamps.npz``,
+    ``poses_bounds.npy``, ``events.h5``; :mod:`edygs_ns.data.layouts.evdeblurnerf` describes
+    the format and its sources). Raw events with real exposure times, so any k works. The
+    blurry frames are the images whose exposure has a length; the sharp held-out views become
+    the processed scene's ground-truth novel views. Given poses are the scene's camera path
+    interpolated at each latent instant.
 
 A capture holds the selected frames (frame range/stride applied), downscaled by an integer
 factor together with the event coordinates. Pixel values are stored 8-bit RGB as read: grey
@@ -33,11 +39,11 @@ from typing import List, Literal, Optional, Sequence, Tuple
 import cv2
 import numpy as np
 
-from edygs_ns.events.accumulate import latent_times_us
+from edygs_ns.events.accumulate import COVERAGE_TOLERANCE_BINS, check_event_coverage, latent_times_us  # noqa: F401 (re-exported)
 from edygs_ns.events.exposures import Exposure, read_exposures
 from edygs_ns.events.readers import ArrayEventSource, EventSource, open_event_source, read_aedat4
 from edygs_ns.events.types import EventArray
-from edygs_ns.data.layouts.common import Intrinsics
+from edygs_ns.data.layouts.common import Intrinsics, interpolate_poses  # noqa: F401 (re-exported)
 
 #: Largest value of an 8-bit pixel.
 UINT8_MAX = 255
@@ -74,9 +80,8 @@ E2NERF_BLENDER_DEPTH_RANGE = (2.0, 6.0)
 #: [i * period, i * period + exposure) µs. Only normalised latent times depend on it.
 E2NERF_FRAME_PERIOD_US = 200_000
 E2NERF_EXPOSURE_US = 100_000
-#: Exposures may start before the first event or end after the last one by this fraction of
-#: one event bin (events are discrete; a quiet instant at the edge is not a gap).
-COVERAGE_TOLERANCE_BINS = 1.0
+#: What a coverage error suggests checking (edygs-process can shift the event clock).
+COVERAGE_HINT = "check the event file, the exposure times and --events-t-offset-us"
 #: Fragment of the readers' error when a file stores no sensor size (then the frame size is used).
 NO_SENSOR_SIZE_MESSAGE = "does not store the sensor size"
 
@@ -93,9 +98,17 @@ class InputConfig:
     """Input form (b): the event file (.h5, .npz, .npy, .txt, .aedat4)."""
     e2nerf: Optional[Path] = None
     """Input form (c): an E2NeRF synthetic (transform_train.json) or real (poses_bounds.npy) scene folder."""
+    evdeblurnerf: Optional[Path] = None
+    """Input form (c): an EvDeblurNeRF scene folder (images_1/ + timestamps.npz, poses_bounds.npy, events.h5)."""
+    evdeblurnerf_events_unit: Literal["auto", "us", "ns"] = "auto"
+    """Unit of t in an EvDeblurNeRF events.h5 (the file does not say: the authors' Blender scenes use ns,
+    their CDAVIS scenes us). "auto": the unit under which the events last about as long as the images."""
+    evdeblurnerf_timestamps_unit: Literal["us", "ns"] = "us"
+    """Unit of an EvDeblurNeRF scene's timestamps.npz and all_timestamps.npy (the authors' configs: us)."""
     given_poses: Optional[Path] = None
     """With --poses given: a transforms.json with one frame per latent (blurry_index, latent_index or
-    time_us, transform_matrix). Default: gt/transforms.json next to the exposure table, or the E2NeRF poses."""
+    time_us, transform_matrix). Default: gt/transforms.json next to the exposure table, or the E2NeRF /
+    EvDeblurNeRF poses."""
     events_t_offset_us: Optional[int] = None
     """Microseconds added to every event timestamp (replaces the file's own t_offset)."""
     frame_start: int = 0
@@ -128,11 +141,28 @@ class GivenPoses:
 
 
 @dataclass
+class SharpViews:
+    """Sharp images with known poses and instants, kept as the processed scene's novel views.
+
+    Attributes:
+        image_paths: V sharp images (same size as the capture's frames before downscaling).
+        c2w: [V, 4, 4] OpenGL camera-to-world, in the world frame of the given poses.
+        times_us: [V] int64 instant of each view on the event clock.
+        intrinsics: the camera of these images, at their stored size.
+    """
+
+    image_paths: List[Path]
+    c2w: np.ndarray
+    times_us: np.ndarray
+    intrinsics: Intrinsics
+
+
+@dataclass
 class Capture:
     """The neutral form of every input: blurry frames, exposures, events, optional poses.
 
     Attributes:
-        form: which input form it came from ("aedat4", "exposures" or "e2nerf").
+        form: which input form it came from ("aedat4", "exposures", "e2nerf" or "evdeblurnerf").
         source: the input file or folder, for messages and the report.
         frames: n uint8 [H, W, 3] blurry frames (selected and downscaled).
         frame_names: n names of the frames' origin, for messages.
@@ -144,6 +174,7 @@ class Capture:
         given_poses: poses from the input, when asked for and available.
         gt_dir: ground-truth folder to copy into the processed scene, if any.
         scene_json: the raw capture's scene.json, if any.
+        sharp_views: sharp views to write as ground-truth novel views, if the input has them.
         input_paths: files whose content the processing depends on (fingerprints).
         selected: n indices of the selected frames in the input's frame list.
     """
@@ -159,6 +190,7 @@ class Capture:
     given_poses: Optional[GivenPoses] = None
     gt_dir: Optional[Path] = None
     scene_json: Optional[Path] = None
+    sharp_views: Optional[SharpViews] = None
     input_paths: List[Path] = field(default_factory=list)
     selected: List[int] = field(default_factory=list)
 
@@ -325,51 +357,8 @@ def check_sensor_matches(events_name: str, sensor_size: Tuple[int, int], frame_n
         )
 
 
-def check_event_coverage(source: EventSource, exposures: Sequence[Exposure], names: Sequence[str], k: int) -> None:
-    """Raise ValueError naming the first frame whose exposure the events do not cover.
-
-    An exposure may overhang the first/last event by COVERAGE_TOLERANCE_BINS event bins.
-    """
-    try:
-        t_first, t_last = source.t_range()
-    except ValueError as err:
-        raise ValueError(f"{source.name}: holds no events, so no exposure is covered") from err
-    for exposure, name in zip(exposures, names):
-        tolerance = COVERAGE_TOLERANCE_BINS * (exposure.end_us - exposure.start_us) / (k - 1)
-        if exposure.start_us < t_first - tolerance or exposure.end_us > t_last + tolerance:
-            raise ValueError(
-                f"{source.name}: events cover [{t_first}, {t_last}] µs but frame {exposure.frame} ({name}) is exposed "
-                f"over [{exposure.start_us}, {exposure.end_us}] µs; check the event file, the exposure times and "
-                "--events-t-offset-us"
-            )
-
-
 # ----------------------------------------------------------------------------------------------
 # Given poses
-
-
-def interpolate_poses(times: np.ndarray, c2w: np.ndarray, query: np.ndarray) -> np.ndarray:
-    """Poses at query times: rotations slerped, centres linear; clamped outside the known times.
-
-    Args:
-        times: [M] strictly increasing µs.
-        c2w: [M, 4, 4] poses at those times.
-        query: [Q] µs.
-
-    Returns:
-        [Q, 4, 4] float64.
-    """
-    from scipy.spatial.transform import Rotation, Slerp
-
-    q = np.clip(query.astype(np.float64), times[0], times[-1])
-    out = np.tile(np.eye(4), (len(q), 1, 1))
-    if len(times) == 1:
-        out[:] = c2w[0]
-        return out
-    out[:, :3, :3] = Slerp(times.astype(np.float64), Rotation.from_matrix(c2w[:, :3, :3]))(q).as_matrix()
-    for axis in range(3):
-        out[:, axis, 3] = np.interp(q, times, c2w[:, axis, 3])
-    return out
 
 
 def _intrinsics_from_json(meta: dict, path: Path) -> Intrinsics:
@@ -453,7 +442,7 @@ def _finish_capture(
             raise ValueError(f"{name}: frame is {frame.shape[1]}x{frame.shape[0]} but {names[0]} is {shape[1]}x{shape[0]}")
     if events is not None:
         check_sensor_matches(events_name, events.sensor_size, names[0], shape)
-        check_event_coverage(events, exposures, names, k)
+        check_event_coverage(events, exposures, names, k, hint=COVERAGE_HINT)
         if config.downscale > 1:
             events = DownscaledEventSource(events, config.downscale)
     frames = [downscale_image(f, config.downscale) for f in frames]
@@ -649,13 +638,58 @@ def load_e2nerf(config: InputConfig, k: int) -> Capture:
     return capture
 
 
+def load_evdeblurnerf(config: InputConfig, k: int) -> Capture:
+    """Input form (c): an EvDeblurNeRF scene: blurry frames with exposures, raw events, a camera path."""
+    from edygs_ns.data.layouts.evdeblurnerf import EVENTS_FILE, TIMESTAMPS_FILE, read_evdeblurnerf_folder
+
+    scene = read_evdeblurnerf_folder(
+        Path(config.evdeblurnerf), config.evdeblurnerf_events_unit, config.evdeblurnerf_timestamps_unit
+    )
+    indices = select_indices(len(scene.blurry), config, str(scene.root))
+    exposures = scene.exposures(indices)
+    names = [str(e.file) for e in exposures]
+    frames = [read_image(e.file, config.alpha_background) for e in exposures]
+    events = scene.open_events()
+    hint = (f"check {EVENTS_FILE} and {TIMESTAMPS_FILE}; the events were read in {scene.events_unit}"
+            + (" (detected)" if scene.events_unit_detected else "")
+            + ": see --evdeblurnerf-events-unit and --evdeblurnerf-timestamps-unit")
+    try:
+        shape = frames[0].shape
+        for frame, name in zip(frames, names):
+            if frame.shape != shape:
+                raise ValueError(f"{name}: frame is {frame.shape[1]}x{frame.shape[0]} but {names[0]} is {shape[1]}x{shape[0]}")
+        check_event_coverage(events, exposures, names, k, hint=hint)
+        capture = _finish_capture(
+            "evdeblurnerf", str(scene.root), frames, names, exposures, None, "", config, k, indices
+        )
+    except Exception:
+        events.close()
+        raise
+    capture.events = DownscaledEventSource(events, config.downscale) if config.downscale > 1 else events
+    capture.given_poses = GivenPoses(
+        c2w=scene.latent_poses(exposures, k),
+        intrinsics=scene.intrinsics.resized(capture.width, capture.height),
+        source=scene.path_source,
+        depth_range=scene.depth_range,
+    )
+    if scene.sharp:
+        capture.sharp_views = SharpViews(
+            image_paths=[scene.image_paths[i] for i in scene.sharp],
+            c2w=scene.image_c2w[scene.sharp],
+            times_us=scene.mid_us[scene.sharp],
+            intrinsics=scene.intrinsics,
+        )
+    capture.input_paths = scene.source_files()
+    return capture
+
+
 def load_capture(config: InputConfig, k: int, want_given_poses: bool) -> Capture:
     """Read one input form into a Capture and check it.
 
     Args:
         config: which input and which frames.
         k: latents per blurry frame (the E2NeRF bins are merged to k - 1; given poses are
-            looked up per latent).
+            looked up or interpolated per latent).
         want_given_poses: load the poses of the input (``--poses given``).
 
     Returns:
@@ -664,17 +698,19 @@ def load_capture(config: InputConfig, k: int, want_given_poses: bool) -> Capture
     Raises:
         FileNotFoundError / ValueError: missing or inconsistent inputs, named in the message.
     """
-    forms = [name for name in ("aedat4", "exposures", "e2nerf") if getattr(config, name) is not None]
+    forms = [name for name in ("aedat4", "exposures", "e2nerf", "evdeblurnerf") if getattr(config, name) is not None]
     if len(forms) != 1:
         raise ValueError(
-            "give exactly one input: --aedat4 FILE, or --exposures CSV --events FILE, or --e2nerf DIR "
+            "give exactly one input: --aedat4 FILE, or --exposures CSV --events FILE, or --e2nerf DIR, "
+            "or --evdeblurnerf DIR "
             f"(got {', '.join('--' + f for f in forms) or 'none'})"
         )
     if config.events is not None and forms[0] != "exposures":
         raise ValueError(f"--events {config.events} goes with --exposures only (--{forms[0]} carries its own events)")
     if k < 2:
         raise ValueError(f"k must be at least 2 (one event bin), got {k}")
-    loader = {"aedat4": load_aedat4, "exposures": load_exposure_table, "e2nerf": load_e2nerf}[forms[0]]
+    loader = {"aedat4": load_aedat4, "exposures": load_exposure_table, "e2nerf": load_e2nerf,
+              "evdeblurnerf": load_evdeblurnerf}[forms[0]]
     capture = loader(config, k)
     if want_given_poses:
         try:
@@ -686,7 +722,7 @@ def load_capture(config: InputConfig, k: int, want_given_poses: bool) -> Capture
 
 
 def _attach_given_poses(capture: Capture, config: InputConfig, k: int) -> None:
-    """Set capture.given_poses from --given-poses, the raw capture's gt/, or the E2NeRF poses."""
+    """Set capture.given_poses from --given-poses, the raw capture's gt/, or the E2NeRF / EvDeblurNeRF poses."""
     frame_size = (capture.height, capture.width)
     if config.given_poses is not None:
         capture.given_poses = poses_from_transforms(Path(config.given_poses), capture.exposures, k, frame_size)

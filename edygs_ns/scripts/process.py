@@ -7,7 +7,7 @@ Steps, each with a progress bar and a one-line summary with its time:
 2. ``edi``: EDI latents for every exposure (k per frame) and the event maps between them.
 3. ``poses``: COLMAP on the latents (SIFT, sequential matching, incremental mapping, one
    shared camera), or the poses given by the input (``--poses given``: a synthetic capture's
-   gt/transforms.json, E2NeRF poses, or ``--given-poses FILE``) with random initial points
+   gt/transforms.json, E2NeRF or EvDeblurNeRF poses, or ``--given-poses FILE``) with random initial points
    back-projected from random pixels of the latents (the points are random, not triangulated).
 4. ``write``: the processed layout of docs/layouts.md, transforms.json last.
 
@@ -40,7 +40,7 @@ from edygs_ns.events.edi import EdiConfig, edi_from_frame
 from edygs_ns.events.exposures import Exposure, read_exposures
 from edygs_ns.preprocess.colmap import ColmapConfig, ColmapResult, registration_message, run_colmap
 from edygs_ns.data.layouts.common import Intrinsics
-from edygs_ns.preprocess.inputs import Capture, InputConfig, load_capture
+from edygs_ns.preprocess.inputs import Capture, InputConfig, load_capture, read_image
 from edygs_ns.preprocess.steps import StepRunner, file_signature, fingerprint, progress_bar
 from edygs_ns.preprocess.writer import (
     REPORT_NAME,
@@ -59,6 +59,7 @@ from edygs_ns.preprocess.writer import (
 WORK_DIR_NAME = ".edygs_work"
 #: Files in the work folder.
 CAPTURE_JSON = "capture.json"
+SHARP_GT_WORK = "sharp_gt"
 GIVEN_POSES_NPZ = "given_poses.npz"
 POSES_NPZ = "poses.npz"
 EVENT_MAPS_WORK = "event_maps.npy"
@@ -92,14 +93,14 @@ class ProcessConfig:
     edi: Annotated[EdiConfig, tyro.conf.arg(name="")] = field(default_factory=EdiConfig)
     poses: Literal["colmap", "given"] = "colmap"
     """Where poses come from: COLMAP on the EDI latents, or the input's own poses (GT of a synthetic
-    capture, E2NeRF poses, or --given-poses FILE) with random initial points."""
+    capture, E2NeRF or EvDeblurNeRF poses, or --given-poses FILE) with random initial points."""
     colmap: ColmapConfig = field(default_factory=ColmapConfig)
     min_registered_fraction: float = 0.9
     """Stop (and write no transforms.json) when COLMAP registers fewer than this share of the latents."""
     num_random_points: int = 20000
     """Initial points drawn when poses are given (back-projected random pixels at random depths)."""
     random_depth_range: Optional[Tuple[float, float]] = None
-    """(near, far) depth of the random points, world units. None: from the input (E2NeRF bounds,
+    """(near, far) depth of the random points, world units. None: from the input (E2NeRF/EvDeblurNeRF bounds,
     scene.json's room), else 0.5-5x the camera path's diameter."""
     seed: int = 0
     """Seed of the random initial points."""
@@ -127,9 +128,20 @@ def _input_signature(config: InputConfig) -> List[Dict[str, Any]]:
         paths.append(Path(config.events))
     if config.e2nerf is not None:
         paths.append(Path(config.e2nerf))
+    if config.evdeblurnerf is not None:
+        paths += _evdeblurnerf_files(Path(config.evdeblurnerf))
     if config.given_poses is not None:
         paths.append(Path(config.given_poses))
     return [file_signature(p) for p in paths]
+
+
+def _evdeblurnerf_files(root: Path) -> List[Path]:
+    """The files an EvDeblurNeRF scene's content depends on (not its edygs_cache/ of edygs-data)."""
+    from edygs_ns.data.layouts.evdeblurnerf import IMAGES_FOLDER
+
+    files = [p for p in sorted(root.glob("*")) if p.is_file()] if root.is_dir() else [root]
+    images = root / IMAGES_FOLDER
+    return files + ([p for p in sorted(images.iterdir()) if p.is_file()] if images.is_dir() else [])
 
 
 def _input_settings(config: InputConfig) -> Dict[str, Any]:
@@ -139,7 +151,7 @@ def _input_settings(config: InputConfig) -> Dict[str, Any]:
 
 def _input_roots(config: InputConfig) -> List[Path]:
     """Input files and folders the output folder must not contain."""
-    roots = [config.aedat4, config.events, config.e2nerf, config.given_poses]
+    roots = [config.aedat4, config.events, config.e2nerf, config.evdeblurnerf, config.given_poses]
     if config.exposures is not None:
         roots.append(Path(config.exposures).resolve().parent)
     return [Path(p) for p in roots if p is not None]
@@ -189,6 +201,9 @@ class Pipeline:
         given = capture.given_poses if self.config.poses == "given" else None
         if given is not None:
             np.savez(self.work / GIVEN_POSES_NPZ, c2w=given.c2w)
+        gt_dir = capture.gt_dir
+        if capture.sharp_views is not None:
+            gt_dir = self._write_sharp_ground_truth(capture)
         meta = {
             "form": capture.form,
             "source": capture.source,
@@ -197,7 +212,7 @@ class Pipeline:
             "exposures": [[e.frame, e.start_us, e.end_us, str(e.file)] for e in capture.exposures],
             "frame_names": capture.frame_names,
             "event_count_scale": capture.event_count_scale,
-            "gt_dir": str(capture.gt_dir) if capture.gt_dir is not None else None,
+            "gt_dir": str(gt_dir) if gt_dir is not None else None,
             "scene_json": str(capture.scene_json) if capture.scene_json is not None else None,
             "given_intrinsics": asdict(given.intrinsics) if given is not None else None,
             "given_source": given.source if given is not None else None,
@@ -210,8 +225,30 @@ class Pipeline:
         else:
             events = "pre-binned events"
         poses = f", given poses from {given.source}" if given is not None else ""
+        if capture.sharp_views is not None:
+            poses += f", {len(capture.sharp_views.image_paths)} sharp views kept as ground truth"
         return (f"{len(capture.frames)} frames {capture.width}x{capture.height} ({capture.form} input "
                 f"{capture.source}), {events}{poses}")
+
+    def _write_sharp_ground_truth(self, capture: Capture) -> Path:
+        """The input's sharp views as a raw-capture style gt/ folder (novel views only) in the work folder."""
+        views = capture.sharp_views
+        assert views is not None
+        folder = self.work / SHARP_GT_WORK
+        if folder.exists():
+            shutil.rmtree(folder)
+        (folder / "novel").mkdir(parents=True)
+        novel = []
+        for i, (path, c2w, t_us) in enumerate(zip(views.image_paths, views.c2w, views.times_us)):
+            name = f"novel/{i:04d}.png"
+            write_rgb_png(folder / name, read_image(Path(path), self.config.inputs.alpha_background))
+            novel.append({"file_path": name, "transform_matrix": np.asarray(c2w).tolist(), "time_us": int(t_us),
+                          "source_file": str(path)})
+        intr = views.intrinsics
+        meta = {"w": intr.width, "h": intr.height, "fl_x": intr.fl_x, "fl_y": intr.fl_y, "cx": intr.cx, "cy": intr.cy,
+                "camera_model": "PINHOLE", "frames": [], "novel_frames": novel}
+        (folder / "transforms.json").write_text(json.dumps(meta, indent=2))
+        return folder
 
     def edi(self) -> str:
         """EDI latents of every exposure, and the event maps [n, k-1, H, W] they used."""
@@ -379,7 +416,8 @@ def process(config: ProcessConfig) -> Dict[str, Any]:
     started = time.perf_counter()
     try:
         read_fp = fingerprint("read", _input_signature(config.inputs), _input_settings(config.inputs), config.poses,
-                              config.edi.k if config.poses == "given" or config.inputs.e2nerf else None)
+                              config.edi.k if config.poses == "given" or config.inputs.e2nerf
+                              or config.inputs.evdeblurnerf else None)
         runner.run("read", read_fp, pipeline.read)
         edi_fp = fingerprint("edi", read_fp, asdict(config.edi))
         runner.run("edi", edi_fp, pipeline.edi)

@@ -8,6 +8,7 @@ from typing import Callable, Dict, Optional, Tuple
 from edygs_ns.data.layouts.common import LAYOUT_NAMES, SceneRecord
 from edygs_ns.data.layouts.e2nerf_real import is_e2nerf_real, read_e2nerf_real
 from edygs_ns.data.layouts.e2nerf_synthetic import is_e2nerf_synthetic, read_e2nerf_synthetic
+from edygs_ns.data.layouts.evdeblurnerf import is_evdeblurnerf, read_evdeblurnerf
 from edygs_ns.data.layouts.processed import is_processed, read_processed
 
 #: What each layout needs, quoted when a folder matches none.
@@ -15,6 +16,7 @@ LAYOUT_REQUIREMENTS: Dict[str, str] = {
     "processed": "transforms.json + event_maps.npy (written by edygs-process)",
     "e2nerf-synthetic": "transform_train.json + events.pt + train/r_<i>.png",
     "e2nerf-real": "poses_bounds.npy + events.pt + images/",
+    "evdeblurnerf": "poses_bounds.npy + events.h5 + images_1/ with timestamps.npz",
 }
 #: Files that mark a raw capture, which must go through edygs-process first.
 RAW_CAPTURE_MARKER = "exposures.csv"
@@ -24,6 +26,7 @@ _LAYOUTS: Dict[str, Tuple[Callable[[Path], bool], Callable[..., SceneRecord]]] =
     "processed": (is_processed, read_processed),
     "e2nerf-synthetic": (is_e2nerf_synthetic, read_e2nerf_synthetic),
     "e2nerf-real": (is_e2nerf_real, read_e2nerf_real),
+    "evdeblurnerf": (is_evdeblurnerf, read_evdeblurnerf),
 }
 
 
@@ -53,6 +56,7 @@ def read_scene(
     theta: Optional[float] = None,
     color_space: Optional[str] = None,
     clip_max: float = 1.0,
+    k: Optional[int] = None,
 ) -> SceneRecord:
     """Read a scene folder of any supported layout.
 
@@ -62,6 +66,7 @@ def read_scene(
         theta: contrast threshold override (None: the scene's own, or 0.2 for E2NeRF data).
         color_space: pixel encoding override (None: the scene's own, or "linear").
         clip_max: EDI clip for layouts whose latents are computed here.
+        k: latents per blurry frame for layouts that leave it open (EvDeblurNeRF; None: its default).
 
     Raises:
         ValueError: unknown layout name, or a folder that does not match.
@@ -76,4 +81,6 @@ def read_scene(
     _, reader = _LAYOUTS[name]
     if name == "processed":
         return reader(root, theta=theta, color_space=color_space)
+    if name == "evdeblurnerf":
+        return reader(root, theta=theta, color_space=color_space, clip_max=clip_max, k=k)
     return reader(root, theta=theta, color_space=color_space, clip_max=clip_max)

@@ -21,7 +21,7 @@ import numpy as np
 from PIL import Image
 
 #: The layout names a reader can produce.
-LAYOUT_NAMES: Tuple[str, ...] = ("processed", "e2nerf-synthetic", "e2nerf-real")
+LAYOUT_NAMES: Tuple[str, ...] = ("processed", "e2nerf-synthetic", "e2nerf-real", "evdeblurnerf")
 #: Side of a homogeneous pose matrix.
 POSE_SIZE = 4
 #: Largest 8-bit value.
@@ -301,3 +301,27 @@ def latent_grid(n_blurry: int, k: int) -> Tuple[np.ndarray, np.ndarray]:
     blurry = np.repeat(np.arange(n_blurry, dtype=np.int64), k)
     latent = np.tile(np.arange(k, dtype=np.int64), n_blurry)
     return blurry, latent
+
+
+def interpolate_poses(times: np.ndarray, c2w: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """Poses at query times: rotations slerped, centres linear; clamped outside the known times.
+
+    Args:
+        times: [M] strictly increasing µs.
+        c2w: [M, 4, 4] poses at those times.
+        query: [Q] µs.
+
+    Returns:
+        [Q, 4, 4] float64.
+    """
+    from scipy.spatial.transform import Rotation, Slerp
+
+    q = np.clip(np.asarray(query, dtype=np.float64), times[0], times[-1])
+    out = np.tile(np.eye(4), (len(q), 1, 1))
+    if len(times) == 1:
+        out[:] = c2w[0]
+        return out
+    out[:, :3, :3] = Slerp(np.asarray(times, dtype=np.float64), Rotation.from_matrix(c2w[:, :3, :3]))(q).as_matrix()
+    for axis in range(3):
+        out[:, axis, 3] = np.interp(q, times, c2w[:, axis, 3])
+    return out
