@@ -17,7 +17,7 @@ from torch.nn import Parameter
 from nerfstudio.cameras.camera_optimizers import CameraOptimizer, CameraOptimizerConfig
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
-from nerfstudio.models.base_model import Model, ModelConfig
+from nerfstudio.models.base_model import ModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from edygs_ns.events.color import decode_to_linear
@@ -27,6 +27,7 @@ from edygs_ns.losses.regularizers import mask_consistency, mask_l1, motion_loss
 from edygs_ns.model.appearance import MAX_SH_DEGREE, sh_to_rgb
 from edygs_ns.model.deformation import DeformationConfig, DeformationField
 from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES, init_gaussians
+from edygs_ns.model.splat_export_view import SplatExportView
 from edygs_ns.model.strategy import DensifyConfig, make_strategy, strategy_info
 from edygs_ns.render.contract import RasterOutputs, select_backend
 from edygs_ns.training.schedule import (
@@ -71,6 +72,9 @@ class EdygsModelConfig(ModelConfig):
     """initial motion-mask value m of every Gaussian (biased towards static)"""
     num_random: int = 5000
     """Gaussians drawn uniformly in the scene box when the data has no points"""
+    fallback_time: float = 0.0
+    """normalised time in [0, 1] used where nerfstudio gives none: cameras without times (ns-render
+    interpolate) and ns-export gaussian-splat; $EDYGS_TIME overrides it (splat_export_view.py)"""
     background_color: Literal["black", "white"] = "black"
     """background colour of renders (the motion mask's background is 0)"""
     ssim_lambda: float = 0.2
@@ -119,7 +123,7 @@ class EdygsModelConfig(ModelConfig):
         apply_ablation(self)
 
 
-class EdygsModel(Model):
+class EdygsModel(SplatExportView):
     """Motion-mask Gaussians with a deformation field, trained in three phases."""
 
     config: EdygsModelConfig
@@ -294,7 +298,7 @@ class EdygsModel(Model):
         viewmats = viewmats_from_c2w(c2w)
         Ks = camera.get_intrinsics_matrices().to(self.device)
         width, height = int(camera.width[0, 0]), int(camera.height[0, 0])
-        times = camera.times.reshape(-1).tolist() if camera.times is not None else [0.0] * camera.shape[0]
+        times = camera.times.reshape(-1).tolist() if camera.times is not None else [self.fallback_time] * camera.shape[0]
         sh_degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree) if self.training else self.config.sh_degree
         coeffs = torch.cat([self.gauss_params["features_dc"][:, None], self.gauss_params["features_rest"]], dim=1)
         background = torch.tensor(

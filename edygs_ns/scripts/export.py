@@ -16,8 +16,10 @@ original 3D Gaussian Splatting code, which splat viewers read:
 Colours are in the pixel encoding the model was trained in: for "linear" scenes a viewer that
 assumes sRGB shows them darker than our renders.
 
-`ns-export gaussian-splat` cannot export EDyGS runs: it asserts `isinstance(model,
-SplatfactoModel)`, and would export the canonical (undeformed) Gaussians without the mask.
+`ns-export gaussian-splat --load-config RUN/config.yml --output-dir DIR` also works (see
+edygs_ns/model/splat_export_view.py): the same baked Gaussians, at the time $EDYGS_TIME or the
+model config's `fallback_time` (default 0.0), but nerfstudio writes a fixed property set, so
+without `motion_mask`, and it drops Gaussians of opacity below 1/255.
 """
 
 from __future__ import annotations
@@ -25,12 +27,14 @@ from __future__ import annotations
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, Optional
+from typing import Optional
 
 import numpy as np
 import torch
 import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
+
+from edygs_ns.model.splat_export_view import bake_gaussians
 
 #: Number of SH coefficients per colour channel at degree 0.
 DC_COEFFS = 1
@@ -42,8 +46,6 @@ MOTION_MASK_PROPERTY = "motion_mask"
 #: Default output file name pattern (the time with TIME_DIGITS decimals).
 FILENAME_PATTERN = "gaussians_t{time}.ply"
 TIME_DIGITS = 3
-#: Smallest scale passed to log (guards a zero after the deformation's scale offset).
-MIN_SCALE = 1e-12
 
 
 @torch.no_grad()
@@ -57,20 +59,16 @@ def baked_gaussians(model: torch.nn.Module, time: float) -> "OrderedDict[str, np
     Returns:
         Ordered property name -> float32 [N] array, in the order listed in the module docstring.
     """
-    if not 0.0 <= float(time) <= 1.0:
-        raise ValueError(f"edygs-export: time must be in [0, 1] (normalised over the clip), got {time}")
-    if not hasattr(model, "deformed_gaussians") or not hasattr(model, "gauss_params"):
-        raise ValueError(f"edygs-export: {type(model).__name__} is not an EDyGS model (no deformed_gaussians)")
-    deform = bool(getattr(getattr(model, "config", None), "use_deformation", True))
-    g: Dict[str, torch.Tensor] = model.deformed_gaussians(float(time), deform=deform)  # type: ignore[operator]
-    params = model.gauss_params
-    means = g["means"].float().cpu()
-    quats = torch.nn.functional.normalize(g["quats"].float(), dim=-1).cpu()
-    log_scales = torch.log(g["scales"].float().clamp_min(MIN_SCALE)).cpu()
-    # the deformation leaves opacity alone: the stored logit is exact (no sigmoid/logit round trip)
-    opacity = params["opacities"].float().reshape(-1).cpu()
-    f_dc = params["features_dc"].float().reshape(means.shape[0], -1).cpu()
-    f_rest = params["features_rest"].float().cpu()  # [N, B-1, 3]
+    try:
+        baked = bake_gaussians(model, time)
+    except ValueError as err:
+        raise ValueError(f"edygs-export: {err}") from None
+    means = baked["means"].cpu()
+    quats = baked["quats"].cpu()
+    log_scales = baked["log_scales"].cpu()
+    opacity = baked["opacity_logits"].reshape(-1).cpu()
+    f_dc = baked["features_dc"].cpu()
+    f_rest = baked["features_rest"].cpu()  # [N, B-1, 3]
     f_rest = f_rest.transpose(1, 2).reshape(means.shape[0], -1)  # channel-major, as 3DGS writes it
     columns: "OrderedDict[str, np.ndarray]" = OrderedDict()
     for i, axis in enumerate("xyz"):
@@ -86,7 +84,7 @@ def baked_gaussians(model: torch.nn.Module, time: float) -> "OrderedDict[str, np
         columns[f"scale_{i}"] = log_scales[:, i].numpy()
     for i in range(quats.shape[1]):
         columns[f"rot_{i}"] = quats[:, i].numpy()
-    columns[MOTION_MASK_PROPERTY] = g["mask"].float().reshape(-1).cpu().numpy()
+    columns[MOTION_MASK_PROPERTY] = baked["mask"].cpu().numpy()
     return OrderedDict((k, np.ascontiguousarray(v, dtype=np.float32)) for k, v in columns.items())
 
 

@@ -1,0 +1,209 @@
+"""nerfstudio's own tools on EDyGS runs: `ns-export gaussian-splat` (the SplatfactoModel view of
+the model, Gaussians baked at the fallback time) and `ns-render interpolate` (cameras without times
+render at the fallback time)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.models.splatfacto import SplatfactoModel
+from plyfile import PlyData
+from test_eval_cli import DYNAMIC_LOGIT, HEAD_WEIGHT_STD, shared_tiny_run
+from test_export import N_STATIC, _model
+
+from edygs_ns.model.edygs_model import EdygsModel
+from edygs_ns.model.splat_export_view import (
+    EXPORT_PROPERTIES,
+    INHERITED_HELPERS,
+    SPLATFACTO_INTERNALS,
+    TIME_ENV,
+    bake_gaussians,
+    resolve_time,
+)
+
+BIN = Path(sys.executable).parent
+#: fallback_time written into the copied run's config.yml, and the $EDYGS_TIME given to the CLIs
+#: (the environment wins).
+CONFIG_TIME, ENV_TIME = 0.25, 0.5
+#: ns-export drops Gaussians below this opacity logit (logit(1/255)).
+EXPORT_MIN_OPACITY_LOGIT = -5.5373
+#: poses ns-render interpolate puts between consecutive eval cameras.
+INTERPOLATION_STEPS = 2
+#: one 8-bit level: ns-render's PNGs against our float renders.
+PNG_TOLERANCE = 1.0 / 255.0
+
+
+@pytest.fixture(autouse=True)
+def no_time_env(monkeypatch):
+    monkeypatch.delenv(TIME_ENV, raising=False)
+
+
+def _camera(times=None) -> Cameras:
+    """One 32x24 camera 3 units in front of the test model's Gaussians (all in [-1, 1]^3)."""
+    c2w = torch.tensor([[[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 3.0]]])
+    return Cameras(camera_to_worlds=c2w, fx=20.0, fy=20.0, cx=16.0, cy=12.0, width=32, height=24, times=times)
+
+
+# ------------------------------------------------------------------ the SplatfactoModel view
+def test_every_splatfacto_attribute_is_replaced_or_a_pure_helper():
+    assert issubclass(EdygsModel, SplatfactoModel)
+    names = {n for n in vars(SplatfactoModel) if not n.startswith("__") or n == "__init__"}
+    for name in names - INHERITED_HELPERS:
+        owner = next(cls for cls in EdygsModel.__mro__ if name in vars(cls))
+        assert owner is not SplatfactoModel, f"EdygsModel inherits SplatfactoModel.{name}"
+    assert EXPORT_PROPERTIES | SPLATFACTO_INTERNALS | INHERITED_HELPERS <= names
+
+
+def test_model_builds_without_splatfacto_and_refuses_its_internals(monkeypatch):
+    def forbidden(self):
+        raise AssertionError("SplatfactoModel.populate_modules ran")
+
+    monkeypatch.setattr(SplatfactoModel, "populate_modules", forbidden)
+    model = _model()  # test_export's tiny model, seed points given
+    assert isinstance(model, SplatfactoModel) and model.num_points == model.means.shape[0]
+    assert len(model.seed_points[0]) == model.num_points  # SplatfactoModel.__init__ did not reset them
+    for call in (lambda: model.step_cb(None, 0), lambda: model.step_post_backward(0), model.get_gaussian_param_groups):
+        with pytest.raises(NotImplementedError, match="splatfacto"):
+            call()
+    model.set_background(torch.ones(3))  # the viewer's call: ignored
+    assert model.config.background_color == "black"
+
+
+def test_properties_are_the_gaussians_baked_at_the_fallback_time(monkeypatch):
+    model = _model()
+    params = {k: v.detach() for k, v in model.gauss_params.items()}
+    # default: t = 0.0
+    torch.testing.assert_close(model.means, bake_gaussians(model, 0.0)["means"])
+    monkeypatch.setenv(TIME_ENV, "1.0")
+    baked = bake_gaussians(model, 1.0)
+    for prop, key in (("means", "means"), ("scales", "log_scales"), ("quats", "quats")):
+        value = getattr(model, prop)
+        assert not value.requires_grad
+        torch.testing.assert_close(value, baked[key])
+    moved = (model.means - params["means"]).norm(dim=-1)
+    assert torch.all(moved[:N_STATIC] == 0) and torch.all(moved[N_STATIC:] > 1e-4)  # only dynamic Gaussians move
+    torch.testing.assert_close(model.opacities, params["opacities"])  # logits, as splatfacto stores them
+    torch.testing.assert_close(model.shs_0, params["features_dc"])
+    torch.testing.assert_close(model.shs_rest, params["features_rest"])
+    torch.testing.assert_close(model.colors, params["features_dc"] * 0.28209479177387814 + 0.5)
+
+
+def test_time_comes_from_the_environment_then_the_config(monkeypatch):
+    assert resolve_time(0.3) == 0.3
+    monkeypatch.setenv(TIME_ENV, "0.75")
+    assert resolve_time(0.3) == 0.75
+    for bad in ("1.5", "-0.1", "nan", "soon"):
+        monkeypatch.setenv(TIME_ENV, bad)
+        with pytest.raises(ValueError, match=TIME_ENV):
+            resolve_time(0.3)
+    monkeypatch.delenv(TIME_ENV)
+    with pytest.raises(ValueError, match="fallback_time"):
+        resolve_time(2.0)
+
+
+def test_cameras_without_times_render_at_the_fallback_time(monkeypatch):
+    model = _model()
+    model.config.fallback_time = 0.7
+    timeless = model.get_outputs_for_camera(_camera())["rgb"]
+    at = lambda t: model.get_outputs_for_camera(_camera(times=torch.tensor([[t]])))["rgb"]  # noqa: E731
+    torch.testing.assert_close(timeless, at(0.7))
+    assert (timeless - at(0.0)).abs().max() > 1e-3  # the time matters for this model
+    monkeypatch.setenv(TIME_ENV, "0.0")
+    torch.testing.assert_close(model.get_outputs_for_camera(_camera())["rgb"], at(0.0))
+
+
+# ------------------------------------------------------------------ the host CLIs on a trained run
+def _deformed_copy(config_path: Path, root: Path) -> Path:
+    """Copy of a trained run whose every Gaussian deforms (training leaves the heads at zero), with
+    fallback_time = CONFIG_TIME in its config.yml; returns the copy's config.yml."""
+    config = yaml.load(config_path.read_text(), Loader=yaml.Loader)
+    source = config.get_checkpoint_dir()
+    config.output_dir = root / "runs"
+    config.pipeline.model.fallback_time = CONFIG_TIME
+    config.save_config()
+    target = config.get_checkpoint_dir()
+    target.mkdir(parents=True)
+    gen = torch.Generator().manual_seed(0)
+    for ckpt in sorted(source.glob("*.ckpt")):
+        state = torch.load(ckpt, map_location="cpu", weights_only=False)
+        model_state = state["pipeline"]
+        model_state["_model.gauss_params.mask_logit"].fill_(DYNAMIC_LOGIT)
+        model_state["_model.deformation.head_xyz.weight"].normal_(0.0, HEAD_WEIGHT_STD, generator=gen)
+        torch.save(state, target / ckpt.name)
+    return config.get_base_dir() / "config.yml"
+
+
+@pytest.fixture(scope="module")
+def deformed_run(tmp_path_factory):
+    """(config.yml, pipeline) of the deformed copy of the shared tiny run."""
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    config = _deformed_copy(shared_tiny_run(tmp_path_factory), tmp_path_factory.mktemp("deformed"))
+    _, pipeline, _, _ = eval_setup(config, test_mode="test")
+    pipeline.model.eval()
+    return config, pipeline
+
+
+def _run(args, tmp_path: Path) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_WAIT_POLICY="PASSIVE", **{TIME_ENV: str(ENV_TIME)})
+    result = subprocess.run([str(a) for a in args], capture_output=True, text=True, env=env, timeout=600, cwd=tmp_path)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    return result
+
+
+def test_ns_export_gaussian_splat_writes_the_baked_gaussians(deformed_run, tmp_path):
+    config, pipeline = deformed_run
+    out = tmp_path / "export"
+    _run([BIN / "ns-export", "gaussian-splat", "--load-config", config, "--output-dir", out], tmp_path)
+    vertex = PlyData.read(str(out / "splat.ply"))["vertex"]
+    ply = {p.name: np.asarray(vertex[p.name]) for p in vertex.properties}
+    assert "motion_mask" not in ply  # nerfstudio writes its fixed property set; edygs-export adds the mask
+
+    model = pipeline.model
+    baked = {k: v.cpu().numpy() for k, v in bake_gaussians(model, ENV_TIME).items()}
+    keep = baked["opacity_logits"][:, 0] >= EXPORT_MIN_OPACITY_LOGIT
+    assert keep.sum() > 0 and ply["x"].size == keep.sum() <= model.num_points
+    xyz = np.stack([ply["x"], ply["y"], ply["z"]], axis=1)
+    np.testing.assert_allclose(xyz, baked["means"][keep], atol=1e-6)
+    np.testing.assert_allclose(np.stack([ply[f"scale_{i}"] for i in range(3)], 1), baked["log_scales"][keep], atol=1e-6)
+    np.testing.assert_allclose(np.stack([ply[f"rot_{i}"] for i in range(4)], 1), baked["quats"][keep], atol=1e-6)
+    # the environment's time won over config.yml's, and the deformation moved the Gaussians
+    canonical = model.gauss_params["means"].detach().numpy()[keep]
+    at_config_time = bake_gaussians(model, CONFIG_TIME)["means"].cpu().numpy()[keep]
+    assert np.abs(xyz - canonical).max() > 1e-3 and np.abs(xyz - at_config_time).max() > 1e-3
+
+
+def test_ns_render_interpolate_renders_at_the_fallback_time(deformed_run, tmp_path):
+    from nerfstudio.cameras.camera_paths import get_interpolated_camera_path
+    from PIL import Image
+
+    if shutil.which("ffmpeg") is None:
+        pytest.fail("ffmpeg is required by ns-render; scripts/setup_env.sh installs it")
+    config, pipeline = deformed_run
+    out = tmp_path / "interp"
+    _run([BIN / "ns-render", "interpolate", "--load-config", config, "--output-path", out, "--output-format", "images",
+          "--image-format", "png", "--interpolation-steps", INTERPOLATION_STEPS, "--rendered-output-names", "rgb"],
+         tmp_path)  # fmt: skip
+    frames = sorted(out.glob("*.png"))
+    eval_cameras = pipeline.datamanager.eval_dataset.cameras
+    path = get_interpolated_camera_path(eval_cameras, INTERPOLATION_STEPS, order_poses=False)
+    assert path.times is None and len(frames) == path.shape[0] > 0
+    model = pipeline.model
+    with torch.no_grad():
+        for i in (0, len(frames) - 1):
+            image = np.asarray(Image.open(frames[i]).convert("RGB"), dtype=np.float32) / 255.0
+            camera = path[i : i + 1]
+            expected = model.get_outputs_for_camera(camera)["rgb"].numpy()  # env unset: config.yml's time
+            assert np.abs(image - expected).max() > 3 * PNG_TOLERANCE  # not the config's 0.25 ...
+            camera.times = torch.full((1, 1), ENV_TIME)
+            expected = model.get_outputs_for_camera(camera)["rgb"].numpy()
+            np.testing.assert_allclose(image, expected, atol=PNG_TOLERANCE + 1e-6)  # ... but $EDYGS_TIME
