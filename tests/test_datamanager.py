@@ -97,3 +97,19 @@ def test_points_exposed_for_seeding(scene):
     assert xyz.shape == (len(scene.points), 3)
     assert "event_maps" not in dm.train_dataset.metadata  # not deep-copied into the dataset
     assert dm.event_maps is not None and dm.event_maps.shape == scene.event_maps.shape
+
+
+def test_time_window_limits_the_pairs_served(scene):
+    dm = _manager(scene.root)
+    times = dm.train_cameras.times.reshape(-1)
+    lo, hi = float(times.min()), float(times.median())
+    dm.set_time_window((lo, hi))
+    inside = {p for p in dm.pairs if lo <= times[p[0]] <= hi and lo <= times[p[1]] <= hi}
+    assert 0 < len(inside) < len(dm.pairs)
+    served = {tuple(dm.next_train(0)[1]["image_idx"].tolist()) for _ in range(3 * len(dm.pairs))}
+    assert served == inside
+    dm.set_time_window((5.0, 6.0))  # no pair inside: the pair nearest the window is served
+    assert tuple(dm.next_train(0)[1]["image_idx"].tolist()) == max(dm.pairs, key=lambda p: float(times[p[0]]))
+    dm.set_time_window(None)
+    served = {tuple(dm.next_train(0)[1]["image_idx"].tolist()) for _ in range(3 * len(dm.pairs))}
+    assert served == set(dm.pairs)

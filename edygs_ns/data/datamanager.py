@@ -94,6 +94,9 @@ class EdygsDataManager(FullImageDatamanager):
                 raise ValueError("pair_events needs camera_res_scale_factor=1 (event maps are not resampled)")
             self.event_maps = meta["event_maps"].to(device=self.device, dtype=torch.float32)
         self._pair_rng = random.Random(config.train_cameras_sampling_seed)
+        self.time_window: Optional[Tuple[float, float]] = None
+        times = self.train_cameras.times
+        self._train_times = (times.reshape(-1) if times is not None else torch.zeros(len(self.train_cameras))).cpu()
         self.unseen_pairs: List[Tuple[int, int]] = self._shuffled_pairs()
 
     # -- setup ----------------------------------------------------------------------------------
@@ -138,14 +141,35 @@ class EdygsDataManager(FullImageDatamanager):
         self._pair_rng.shuffle(order)
         return order
 
-    def next_pair(self) -> Tuple[int, int]:
-        """The next (i, i+1) train-camera pair of this epoch; a new shuffled epoch starts when all were served."""
-        pair = self.unseen_pairs.pop(0)
-        if not self.unseen_pairs:
-            self.unseen_pairs = self._shuffled_pairs()
-        return pair
+    def set_time_window(self, window: Optional[Tuple[float, float]]) -> None:
+        """Draw training latents only with normalised times in [lo, hi] (None: the whole clip).
 
-    def _train_image(self, idx: int) -> torch.Tensor:
+        A window that holds no training pair is widened to the pair nearest its centre."""
+        self.time_window = window
+
+    def _in_window(self, pair: Tuple[int, int]) -> bool:
+        if self.time_window is None:
+            return True
+        lo, hi = self.time_window
+        times = self._train_times
+        return lo <= float(times[pair[0]]) <= hi and lo <= float(times[pair[1]]) <= hi
+
+    def next_pair(self) -> Tuple[int, int]:
+        """The next (i, i+1) train-camera pair of this epoch inside the time window; a new shuffled
+        epoch starts when all were served (pairs outside the window are passed over for this epoch)."""
+        if self.time_window is not None and not any(self._in_window(p) for p in self.pairs):
+            centre = 0.5 * (self.time_window[0] + self.time_window[1])
+            nearest = min(self.pairs, key=lambda p: abs(float(self._train_times[p[0]] + self._train_times[p[1]]) / 2 - centre))
+            return nearest
+        while True:
+            pair = self.unseen_pairs.pop(0)
+            if not self.unseen_pairs:
+                self.unseen_pairs = self._shuffled_pairs()
+            if self._in_window(pair):
+                return pair
+
+    def train_image(self, idx: int) -> torch.Tensor:
+        """Training image ``idx`` as float32 [H, W, 3|4] in [0, 1] on the training device."""
         image = self.cached_train[idx]["image"].to(self.device)
         return image.float() / UINT8_MAX if image.dtype == torch.uint8 else image
 
@@ -154,14 +178,14 @@ class EdygsDataManager(FullImageDatamanager):
         if not self.serves_pairs:
             camera, data = super().next_train(step)
             idx = int(camera.metadata["cam_idx"])  # type: ignore[index]
-            return camera, {"image": self._train_image(idx)[None], "image_idx": torch.tensor([idx], dtype=torch.long)}
+            return camera, {"image": self.train_image(idx)[None], "image_idx": torch.tensor([idx], dtype=torch.long)}
         assert self.event_maps is not None
         first, second = self.next_pair()
         indices = torch.tensor([first, second], dtype=torch.long)
         cameras = self.train_cameras[indices].to(self.device)
         cameras.metadata = {"cam_idx": indices.reshape(PAIR_SIZE, 1)}
         batch = {
-            "image": torch.stack([self._train_image(first), self._train_image(second)]),
+            "image": torch.stack([self.train_image(first), self.train_image(second)]),
             "event_map": self.event_maps[int(self.blurry_index[first]), int(self.latent_index[first])],
             "image_idx": indices.to(self.device),
         }

@@ -26,9 +26,10 @@ from edygs_ns.losses.photometric import l1_dssim
 from edygs_ns.losses.regularizers import mask_consistency, mask_l1, motion_loss
 from edygs_ns.model.appearance import MAX_SH_DEGREE, sh_to_rgb
 from edygs_ns.model.deformation import DeformationConfig, DeformationField
-from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES, init_gaussians
+from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig, evidence_track, fit_motion, motion_evidence, seed_gaussians
+from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES, init_gaussians, seed_tensors
 from edygs_ns.model.splat_export_view import SplatExportView
-from edygs_ns.model.strategy import DensifyConfig, make_strategy, strategy_info
+from edygs_ns.model.strategy import DensifyConfig, append_gaussians, make_strategy, strategy_info
 from edygs_ns.render.contract import RasterOutputs, select_backend
 from edygs_ns.training.schedule import (
     CAMERA_GROUP,
@@ -39,6 +40,7 @@ from edygs_ns.training.schedule import (
     is_active,
     is_trainable,
     phase_at,
+    time_window,
 )
 
 #: OpenGL (nerfstudio) -> OpenCV camera axes: flip y and z.
@@ -58,6 +60,8 @@ class EdygsModelConfig(ModelConfig):
     """shape of the deformation MLP"""
     densify: DensifyConfig = field(default_factory=DensifyConfig)
     """densification / pruning rules (3DGS)"""
+    seeding: DynamicSeedingConfig = field(default_factory=DynamicSeedingConfig)
+    """motion evidence and dynamic seeds at the static -> dynamic switch"""
     camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="SO3xR3"))
     """per-latent-frame pose refinement (nerfstudio's camera optimiser)"""
     rasterizer: Literal["auto", "torch", "gsplat"] = "auto"
@@ -162,6 +166,8 @@ class EdygsModel(SplatExportView):
         self.optimizers: Dict[str, torch.optim.Optimizer] = {}
         self._info: Optional[dict] = None
         self._train_cameras: Optional[Cameras] = None
+        self._train_image = None  # datamanager.train_image, set by get_training_callbacks
+        self._set_time_window = None  # datamanager.set_time_window, set by get_training_callbacks
 
     @property
     def num_points(self) -> int:
@@ -191,7 +197,11 @@ class EdygsModel(SplatExportView):
 
     # ------------------------------------------------------------ callbacks
     def get_training_callbacks(self, attrs: TrainingCallbackAttributes) -> List[TrainingCallback]:
-        self._train_cameras = attrs.pipeline.datamanager.train_dataset.cameras  # type: ignore[union-attr]
+        datamanager = attrs.pipeline.datamanager
+        self._train_cameras = datamanager.train_dataset.cameras  # type: ignore[union-attr]
+        # bound methods, not the datamanager itself (an nn.Module attribute would join the state dict)
+        self._train_image = getattr(datamanager, "train_image", None)
+        self._set_time_window = getattr(datamanager, "set_time_window", None)
         return [
             TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self.before_step, args=[attrs.optimizers]),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.after_step),
@@ -203,7 +213,14 @@ class EdygsModel(SplatExportView):
         self.optimizers = optimizers.optimizers
         self.apply_phase(self.phase)
         if self.phase is Phase.DYNAMIC and self.config.use_motion_mask and self.static_masks.numel() == 0:
-            self.capture_static_masks()
+            self.enter_dynamic_phase()
+        if self._set_time_window is not None and self.seeding_active:
+            self._set_time_window(time_window(step, self.config.schedule, self.config.seeding.reference_time))
+
+    @property
+    def seeding_active(self) -> bool:
+        """Motion evidence, dynamic seeds and the time curriculum need the mask and the deformation."""
+        return self.config.seeding.enabled and self.config.use_motion_mask and self.config.use_deformation
 
     def after_step(self, step: int) -> None:
         if self._info is None:
@@ -235,18 +252,53 @@ class EdygsModel(SplatExportView):
             p.requires_grad_(flags[CAMERA_GROUP])
 
     @torch.no_grad()
-    def capture_static_masks(self) -> None:
-        """Render M̂ for every training latent at the refined poses (start of the dynamic phase)."""
+    def enter_dynamic_phase(self) -> None:
+        """At the static -> dynamic switch: render every training latent with the static model at
+        the refined poses and store the mask-consistency targets M̂; with seeding on, derive motion
+        evidence, seed Gaussians on it and initialise their motion (model/dynamic_seeding.py)."""
         if self._train_cameras is None:
             return
         cameras = self._train_cameras.to(self.device)
-        masks = []
+        use_evidence = self.seeding_active and self._train_image is not None
+        masks, residuals, depths, cams_to_world = [], [], [], []
         for i in range(cameras.shape[0]):
             camera = cameras[i : i + 1]
             camera.metadata = {"cam_idx": i}
-            masks.append(self.render_cameras(camera, deform=False)["mask"][0, ..., 0].half())
-        self.static_masks = torch.stack(masks)
-        CONSOLE.log(f"[edygs] dynamic phase from step {self.step}: stored {len(masks)} static-phase motion masks")
+            out = self.render_cameras(camera, deform=False)
+            masks.append(out["mask"][0, ..., 0])
+            if use_evidence:
+                image = self._train_image(i)[..., :3].to(self.device)
+                residuals.append((out["rgb"][0] - image).abs().mean(dim=-1))
+                depths.append(torch.where(out["accumulation"][0, ..., 0] > 0.5, out["depth"][0, ..., 0], torch.zeros_like(masks[-1])))
+                cams_to_world.append(torch.linalg.inv(viewmats_from_c2w(self.camera_to_worlds(camera))[0]))
+        rendered = torch.stack(masks)
+        message = f"[edygs] dynamic phase from step {self.step}: {len(masks)} mask-consistency targets"
+        if not use_evidence:
+            self.static_masks = rendered.half()
+            CONSOLE.log(message + " (rendered static-phase masks)")
+            return
+        cfg = self.config.seeding
+        evidence, threshold = motion_evidence(torch.stack(residuals), cfg)
+        targets = {"evidence": evidence, "rendered": rendered, "max": torch.maximum(rendered, evidence)}
+        self.static_masks = targets[cfg.consistency_target].half()
+        depth, c2w_cv = torch.stack(depths), torch.stack(cams_to_world)
+        Ks = cameras.get_intrinsics_matrices().to(self.device)
+        times = cameras.times.reshape(-1).to(self.device) if cameras.times is not None else torch.zeros(cameras.shape[0], device=self.device)
+        ref = int(torch.argmin((times - cfg.reference_time).abs()))
+        points, colors, radii = seed_gaussians(evidence[ref], depth[ref], self._train_image(ref)[..., :3].to(self.device), Ks[ref], c2w_cv[ref], cfg)
+        new = seed_tensors(points, colors, radii, self.config.sh_degree, cfg.seed_opacity, cfg.seed_mask)
+        added = append_gaussians(self.gauss_params, self.optimizers, self.strategy_state, new)
+        track_idx, track = evidence_track(evidence, depth, Ks, c2w_cv, cfg)
+        message += (
+            f" ({cfg.consistency_target}); motion evidence on {100.0 * float(evidence.mean()):.1f}% of pixels"
+            f" (residual > {threshold:.3f}), {added} dynamic seeds"
+        )
+        if added and ref in track_idx.tolist():
+            anchor = track[track_idx.tolist().index(ref)]
+            losses = fit_motion(self.deformation, points, times[track_idx.to(times.device)], track.to(points) - anchor, cfg)
+            if losses:
+                message += f", motion initialised on a {len(track_idx)}-latent track (fit loss {losses[0]:.4f} -> {losses[-1]:.4f})"
+        CONSOLE.log(message)
 
     # ------------------------------------------------------------ rendering
     def camera_indices(self, camera: Cameras) -> Optional[Tensor]:

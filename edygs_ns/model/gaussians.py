@@ -88,3 +88,29 @@ def init_gaussians(
         "mask_logit": torch.full((n, 1), logit(init_mask)),
     }
     return nn.ParameterDict({name: nn.Parameter(params[name]) for name in GAUSSIAN_ATTRIBUTES})
+
+
+def seed_tensors(
+    points: Float[Tensor, "S 3"],
+    colors: Float[Tensor, "S 3"],
+    radii: Float[Tensor, "S"],
+    sh_degree: int,
+    opacity: float,
+    mask: float,
+) -> Dict[str, Tensor]:
+    """Raw attribute tensors (one per GAUSSIAN_ATTRIBUTES name) of isotropic Gaussians at ``points``
+    with RGB ``colors`` in [0, 1], world ``radii``, the given opacity and motion mask m."""
+    n = points.shape[0]
+    features = torch.zeros(n, num_sh_bases(sh_degree), 3, device=points.device)
+    features[:, 0] = rgb_to_sh(colors.float())
+    quats = torch.zeros(n, 4, device=points.device)
+    quats[:, 0] = 1.0
+    return {
+        "means": points.float(),
+        "scales": torch.log(radii.float().clamp_min(MIN_INIT_SCALE))[:, None].repeat(1, 3),
+        "quats": quats,
+        "features_dc": features[:, 0].contiguous(),
+        "features_rest": features[:, 1:].contiguous(),
+        "opacities": torch.full((n, 1), logit(opacity), device=points.device),
+        "mask_logit": torch.full((n, 1), logit(mask), device=points.device),
+    }

@@ -35,8 +35,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Dict, Tuple
 
+import torch
 from gsplat.strategy import DefaultStrategy
+from gsplat.strategy.ops import _update_param_with_optimizer
 from nerfstudio.utils.rich_utils import CONSOLE
+from torch import Tensor
 
 from edygs_ns.render.contract import RasterOutputs
 
@@ -138,3 +141,24 @@ def strategy_info(outputs: RasterOutputs, width: int, height: int) -> Dict[str, 
         "n_cameras": int(outputs.means2d.shape[0]),
         "gaussian_ids": None,
     }
+
+
+@torch.no_grad()
+def append_gaussians(params, optimizers: Dict[str, torch.optim.Optimizer], state: Dict[str, Any], new: Dict[str, Tensor]) -> int:
+    """Append Gaussians (``new``: one tensor per parameter name, same trailing shapes) with zero
+    optimizer moments and zero densification statistics; returns how many were added."""
+    count = next(iter(new.values())).shape[0]
+    if count == 0:
+        return 0
+
+    def param_fn(name: str, p: Tensor) -> Tensor:
+        return torch.nn.Parameter(torch.cat([p.detach(), new[name].to(p)]), requires_grad=p.requires_grad)
+
+    def optimizer_fn(key: str, v: Tensor) -> Tensor:
+        return torch.cat([v, torch.zeros((count, *v.shape[1:]), dtype=v.dtype, device=v.device)])
+
+    _update_param_with_optimizer(param_fn, optimizer_fn, params, optimizers, names=list(new.keys()))
+    for key, value in state.items():
+        if isinstance(value, Tensor) and value.dim() > 0 and value.shape[0] == params["means"].shape[0] - count:
+            state[key] = torch.cat([value, torch.zeros((count, *value.shape[1:]), dtype=value.dtype, device=value.device)])
+    return count

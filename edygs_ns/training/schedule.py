@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import Enum
-from typing import Dict, FrozenSet
+from typing import Dict, FrozenSet, Optional, Tuple
 
 
 class Phase(str, Enum):
@@ -50,6 +50,12 @@ class PhaseSchedule:
     """iterations of the pose-init warm-up (phase 1)"""
     static_iters: int = 1200
     """iterations of static-region reconstruction (phase 2) after the warm-up"""
+    dynamic_window_start: float = 0.15
+    """time curriculum of the dynamic phase: at its start training latents are drawn only within
+    this half-width (normalised time) of the seeds' reference time; 0.5 or more: no curriculum.
+    Built-in scene, 1500 CPU iterations: mask IoU 0.65 without, 0.75 with 0.15"""
+    dynamic_window_ramp_iters: int = 3000
+    """the window widens linearly to the whole clip over this many dynamic-phase iterations"""
 
     @property
     def static_start(self) -> int:
@@ -77,3 +83,20 @@ def is_trainable(group: str, phase: Phase) -> bool:
 def is_active(loss: str, phase: Phase) -> bool:
     """Whether loss term ``loss`` counts in ``phase``."""
     return loss in ACTIVE_LOSSES[phase]
+
+
+def time_window(step: int, schedule: PhaseSchedule, centre: float) -> Optional[Tuple[float, float]]:
+    """The (lo, hi) normalised-time range training latents are drawn from at ``step``, or None for
+    the whole clip (outside the dynamic phase's ramp). The half-width grows linearly from
+    ``dynamic_window_start`` at the dynamic start to cover [0, 1] after ``dynamic_window_ramp_iters``."""
+    if phase_at(step, schedule) is not Phase.DYNAMIC:
+        return None
+    reach = max(centre, 1.0 - centre)
+    start = min(schedule.dynamic_window_start, reach)
+    if start >= reach or schedule.dynamic_window_ramp_iters <= 0:
+        return None
+    progress = (step - schedule.dynamic_start) / schedule.dynamic_window_ramp_iters
+    if progress >= 1.0:
+        return None
+    half = start + (reach - start) * progress
+    return centre - half, centre + half
