@@ -30,6 +30,7 @@ from typing import Any, Dict, List, Tuple
 import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from edygs_ns.configs.run_length import run_length_args
 from edygs_ns.eval.evaluate import evaluate_run
 from edygs_ns.scripts.process import ProcessConfig, process
 from edygs_ns.scripts.synth import SynthConfig, write_synthetic_scene
@@ -57,10 +58,6 @@ class AblationBenchConfig:
     """synthetic scenes (seed picks textures, object motion and camera path)"""
     iters: int = 1500
     """training iterations per run"""
-    pose_init_fraction: float = 0.1
-    """share of the iterations in the pose-init phase"""
-    static_fraction: float = 0.3
-    """share of the iterations in the static phase"""
     poses: str = "colmap"
     """how scenes are posed: colmap (the paper's pipeline) or given (true poses)"""
     variants: List[str] = field(default_factory=lambda: [v[0] for v in VARIANTS])
@@ -109,17 +106,11 @@ def train(cfg: AblationBenchConfig, scene: Path, label: str, method: str, ablati
     timing = config_path.parent / "train_seconds.txt"
     if config_path.exists() and timing.exists():
         return config_path, float(timing.read_text())
-    pose_init = int(cfg.iters * cfg.pose_init_fraction)
-    static = int(cfg.iters * cfg.static_fraction)
     cmd = [
         str(Path(sys.executable).parent / "ns-train"), method, "--data", str(scene),
         "--output-dir", str(runs), "--experiment-name", scene.parent.name, "--timestamp", name,
-        "--machine.device-type", _device(cfg.device), "--max-num-iterations", str(cfg.iters),
-        "--steps-per-save", str(cfg.iters), "--vis", "tensorboard",
-        "--pipeline.model.schedule.pose-init-iters", str(pose_init),
-        "--pipeline.model.schedule.static-iters", str(static),
-        "--pipeline.model.densify.refine-start-iter", str(max(cfg.iters // 15, 1)),
-        "--pipeline.model.densify.refine-stop-iter", str(int(cfg.iters * 0.75)),
+        "--machine.device-type", _device(cfg.device), "--steps-per-save", str(cfg.iters), "--vis", "tensorboard",
+        *run_length_args(cfg.iters),
     ]
     if ablation is not None:
         cmd += ["--pipeline.model.ablation", ablation]

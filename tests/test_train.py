@@ -60,10 +60,22 @@ def test_phases_decide_what_trains(tiny_scene, tmp_path):
     assert model.phase is Phase.STATIC and model.gauss_params["mask_logit"].requires_grad
     assert all(p.requires_grad for p in model.camera_optimizer.parameters())
     assert model.static_masks.numel() == 0
+    dm = trainer.pipeline.datamanager
+    assert dm.time_window is None
+    n_static = model.num_points
     model.before_step(trainer.optimizers, 6)
     assert model.phase is Phase.DYNAMIC and all(p.requires_grad for p in model.deformation.parameters())
-    n_train = trainer.pipeline.datamanager.train_dataset.cameras.shape[0]
+    n_train = dm.train_dataset.cameras.shape[0]
     assert model.static_masks.shape[0] == n_train  # M̂ captured at the switch
+    # seeding: M̂ is the binary motion evidence, seeds were appended with their optimizer state,
+    # and the time curriculum starts around the reference time
+    assert set(torch.unique(model.static_masks.float()).tolist()) <= {0.0, 1.0}
+    assert model.num_points > n_static
+    for name, param in model.gauss_params.items():
+        opt = trainer.optimizers.optimizers[name]
+        assert opt.param_groups[0]["params"][0] is param and param.shape[0] == model.num_points
+    half = model.config.schedule.dynamic_window_start
+    assert dm.time_window == pytest.approx((0.5 - half, 0.5 + half))
 
 
 def test_training_lowers_the_loss_and_resumes_exactly(tiny_scene, tmp_path):

@@ -1,0 +1,53 @@
+"""One place that scales the EDyGS schedule to a run length (the CPU demo and benchmarks).
+
+The method's defaults (``configs/method_configs.py``) are for a full-length GPU run. A shorter
+run keeps the same shape: phase lengths, the dynamic-phase time curriculum, the densification
+window and the learning-rate decays are fractions of the run. ``python -m
+edygs_ns.configs.run_length ITERS`` prints the ``ns-train`` arguments (the demo script uses it).
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from typing import List
+
+
+@dataclass(frozen=True)
+class RunShape:
+    """Fractions of the run given to each part of the schedule."""
+
+    pose_init: float = 0.1
+    """pose-init warm-up"""
+    static: float = 0.3
+    """static phase"""
+    window_ramp: float = 0.3
+    """widening of the dynamic-phase time window (from the dynamic start)"""
+    refine_start: float = 1.0 / 15.0
+    """first densification step"""
+    refine_stop: float = 0.75
+    """last densification step"""
+
+
+def run_length_args(iters: int, shape: RunShape = RunShape()) -> List[str]:
+    """``ns-train edygs`` arguments for an ``iters``-iteration run of the standard shape."""
+    if iters < 10:
+        raise ValueError(f"run_length_args: iters must be >= 10, got {iters}")
+    return [
+        "--max-num-iterations", str(iters),
+        "--pipeline.model.schedule.pose-init-iters", str(int(iters * shape.pose_init)),
+        "--pipeline.model.schedule.static-iters", str(int(iters * shape.static)),
+        "--pipeline.model.schedule.dynamic-window-ramp-iters", str(int(iters * shape.window_ramp)),
+        "--pipeline.model.densify.refine-start-iter", str(max(int(iters * shape.refine_start), 1)),
+        "--pipeline.model.densify.refine-stop-iter", str(int(iters * shape.refine_stop)),
+    ]
+
+
+def main() -> None:
+    if len(sys.argv) != 2 or not sys.argv[1].isdigit():
+        raise SystemExit("usage: python -m edygs_ns.configs.run_length ITERS")
+    print(" ".join(run_length_args(int(sys.argv[1]))))
+
+
+if __name__ == "__main__":
+    main()
