@@ -10,7 +10,8 @@ import torch
 from edygs_ns.model.dynamic_seeding import (
     DynamicSeedingConfig, evidence_track, filter_size, fit_motion, motion_evidence, seed_gaussians,
 )
-from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES, SH_C0, init_gaussians, seed_tensors
+from edygs_ns.model.appearance import SH_C0
+from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES, init_gaussians, seed_tensors
 from edygs_ns.model.strategy import DensifyConfig, append_gaussians, make_strategy
 from edygs_ns.training.schedule import PhaseSchedule, time_window
 

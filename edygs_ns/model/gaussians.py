@@ -14,12 +14,12 @@ import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from edygs_ns.model.appearance import SH_C0, SH_OFFSET
+
 #: every per-Gaussian tensor; the mask logit is densified with its Gaussian like the others.
 GAUSSIAN_ATTRIBUTES: Tuple[str, ...] = (
     "means", "scales", "quats", "features_dc", "features_rest", "opacities", "mask_logit",
 )
-#: SH degree-0 constant: colour = SH_C0 · f_dc + 0.5.
-SH_C0 = 0.28209479177387814
 #: neighbours used for the initial scale (mean distance), as in 3DGS.
 INIT_NEIGHBOURS = 3
 #: smallest initial scale, guards duplicated points.
@@ -31,7 +31,7 @@ def num_sh_bases(degree: int) -> int:
 
 
 def rgb_to_sh(rgb: Tensor) -> Tensor:
-    return (rgb - 0.5) / SH_C0
+    return (rgb - SH_OFFSET) / SH_C0
 
 
 def logit(p: float) -> float:

@@ -42,15 +42,14 @@ from nerfstudio.models.splatfacto import SplatfactoModel
 from torch import Tensor
 from torch.nn import Parameter
 
+from edygs_ns.model.appearance import SH_C0, SH_OFFSET
+
 #: Environment variable overriding the model config's ``fallback_time`` (normalised clip time).
 TIME_ENV = "EDYGS_TIME"
 #: Time used when neither the environment nor the config gives one.
 DEFAULT_FALLBACK_TIME = 0.0
 #: Smallest scale passed to log (guards a zero after the deformation's scale offset).
 MIN_SCALE = 1e-12
-#: SH degree-0 constant: colour = SH_C0 · f_dc + 0.5 (3DGS convention, as splatfacto's SH2RGB).
-SH_C0 = 0.28209479177387814
-SH_OFFSET = 0.5
 
 #: Properties ns-export (and the viewer) read, all overridden below.
 EXPORT_PROPERTIES: FrozenSet[str] = frozenset(
