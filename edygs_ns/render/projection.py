@@ -9,6 +9,7 @@ Cameras use the OpenCV convention (x right, y down, z forward).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import List, Optional
 
 import torch
 from jaxtyping import Float, Int
@@ -79,6 +80,10 @@ def project_gaussians(
     2D covariance (after adding ``eps2d`` pixels^2 to the diagonal, the low-pass filter) is not
     positive definite, or when its 3-sigma square lies entirely off the image.
 
+    Gradients reach means, quats, scales and viewmats through a hand-written backward (autograd
+    of the ~100 elementwise ops cost 3x more on CPU); when ``Ks`` requires grad the same
+    equations run under autograd instead (``project_gaussians_autograd``).
+
     Args:
         means: [N, 3] world positions.
         quats: [N, 4] wxyz rotations, need not be normalised.
@@ -92,17 +97,81 @@ def project_gaussians(
     Returns:
         The screen-space Gaussians; culled entries have finite (meaningless) values.
     """
+    if Ks.requires_grad and torch.is_grad_enabled():
+        return project_gaussians_autograd(means, quats, scales, viewmats, Ks, width, height, near_plane, far_plane, eps2d)
+    means2d, conics, depths, radii = _ProjectGaussians.apply(
+        means, quats, scales, viewmats, Ks.detach(), (width, height, near_plane, far_plane, eps2d)
+    )
+    return Projection(means2d=means2d, conics=conics, depths=depths, radii=radii)
+
+
+def project_gaussians_autograd(
+    means: Tensor, quats: Tensor, scales: Tensor, viewmats: Tensor, Ks: Tensor, width: int, height: int,
+    near_plane: float = DEFAULT_NEAR, far_plane: float = DEFAULT_FAR, eps2d: float = LOW_PASS_EPS,
+) -> Projection:
+    """``project_gaussians`` with autograd through every op (also gives gradients for Ks)."""
+    terms = _projection_terms(means, quats, scales, viewmats, Ks, width, height, near_plane, far_plane, eps2d)
+    return Projection(means2d=terms.means2d, conics=terms.conics, depths=terms.z, radii=terms.radii)
+
+
+@dataclass
+class _Terms:
+    """Intermediate [C, N] / [N] rows of the projection (one tensor per matrix entry)."""
+
+    x: Tensor
+    y: Tensor
+    z: Tensor
+    in_range: Tensor
+    inv_z: Tensor
+    u: Tensor  # x / z
+    v: Tensor
+    u_free: Tensor  # u inside the guard band (the clamp passes its gradient)
+    v_free: Tensor
+    u_clamped: Tensor
+    v_clamped: Tensor
+    fx: Tensor  # [C, 1]
+    fy: Tensor
+    j00: Tensor
+    j02: Tensor
+    j11: Tensor
+    j12: Tensor
+    view: List[List[Tensor]]  # R_view entries, [C, 1]
+    a0: List[Tensor]  # rows of A = J R_view
+    a1: List[Tensor]
+    rot: List[List[Tensor]]  # R_gauss entries, [N]
+    quat: List[Tensor]  # normalised w, x, y, z
+    inv_norm: Tensor  # 1 / |q|
+    scale: List[Tensor]
+    m_world: List[List[Tensor]]  # R_gauss diag(s)
+    row0: List[Tensor]  # rows of A M
+    row1: List[Tensor]
+    cov_a: Tensor
+    cov_b: Tensor
+    cov_c: Tensor
+    valid: Tensor
+    inv_det: Tensor
+    means2d: Tensor
+    conics: Tensor
+    radii: Tensor
+
+
+def _projection_terms(
+    means: Tensor, quats: Tensor, scales: Tensor, viewmats: Tensor, Ks: Tensor, width: int, height: int,
+    near_plane: float, far_plane: float, eps2d: float,
+) -> _Terms:
+    """The projection, one [C, N] or [N] row per matrix entry: elementwise ops on rows with N
+    contiguous are 10-50x faster on CPU (forward and autograd) than [N, 3, 3] broadcasts."""
     rot_view = viewmats[:, :3, :3]  # [C, 3, 3]
-    trans_view = viewmats[:, :3, 3]  # [C, 3]
-    means_c = torch.matmul(means, rot_view.transpose(1, 2)) + trans_view[:, None, :]  # [C, N, 3]
-    x, y, z = means_c.unbind(-1)
+    means_c = torch.matmul(rot_view, means.t()) + viewmats[:, :3, 3:]  # [C, 3, N]
+    x, y, z = means_c.unbind(1)
     in_range = (z >= near_plane) & (z <= far_plane)
     z_safe = torch.where(in_range, z, torch.ones_like(z))
 
     fx, fy = Ks[:, 0, 0, None], Ks[:, 1, 1, None]  # [C, 1]
     cx, cy = Ks[:, 0, 2, None], Ks[:, 1, 2, None]
     inv_z = 1.0 / z_safe
-    means2d = torch.stack([fx * x * inv_z + cx, fy * y * inv_z + cy], dim=-1)  # [C, N, 2]
+    u, v = x * inv_z, y * inv_z
+    means2d = torch.stack([fx * u + cx, fy * v + cy], dim=-1)  # [C, N, 2]
 
     # the Jacobian is evaluated at the position clamped to a guard band around the frustum
     tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
@@ -110,24 +179,35 @@ def project_gaussians(
     lim_x_neg = cx / fx + FOV_GUARD_BAND * tan_fovx
     lim_y_pos = (height - cy) / fy + FOV_GUARD_BAND * tan_fovy
     lim_y_neg = cy / fy + FOV_GUARD_BAND * tan_fovy
-    tx = z_safe * torch.minimum(lim_x_pos, torch.maximum(-lim_x_neg, x * inv_z))
-    ty = z_safe * torch.minimum(lim_y_pos, torch.maximum(-lim_y_neg, y * inv_z))
-    j00, j02 = fx * inv_z, -fx * tx * inv_z * inv_z  # J = [[j00, 0, j02], [0, j11, j12]]
-    j11, j12 = fy * inv_z, -fy * ty * inv_z * inv_z
+    # J = [[j00, 0, j02], [0, j11, j12]] with j02 = -fx tx / z^2 = -fx clamp(x / z) / z
+    j00, j11 = fx * inv_z, fy * inv_z
+    u_clamped = torch.clamp(u, min=-lim_x_neg, max=lim_x_pos)
+    v_clamped = torch.clamp(v, min=-lim_y_neg, max=lim_y_pos)
+    j02, j12 = -j00 * u_clamped, -j11 * v_clamped
+    with torch.no_grad():
+        u_free = (u >= -lim_x_neg) & (u <= lim_x_pos)
+        v_free = (v >= -lim_y_neg) & (v <= lim_y_pos)
 
-    # camera-space square root of the covariance: M = R_view R_gauss diag(s), cov_c = M M^T
-    m_world = quat_to_rotmat(quats) * scales[:, None, :]  # [N, 3, 3]
-    n = means.shape[0]
-    m_cam = torch.matmul(rot_view, m_world.permute(1, 0, 2).reshape(3, 3 * n)).view(-1, 3, n, 3)  # [C, i, N, k]
-    row0 = j00[..., None] * m_cam[:, 0] + j02[..., None] * m_cam[:, 2]  # [C, N, 3]
-    row1 = j11[..., None] * m_cam[:, 1] + j12[..., None] * m_cam[:, 2]
-    cov_a = (row0 * row0).sum(-1) + eps2d
-    cov_b = (row0 * row1).sum(-1)
-    cov_c = (row1 * row1).sum(-1) + eps2d
+    # A = J R_view (2 x 3), entries [C, N]
+    view = [[rot_view[:, i, j, None] for j in range(3)] for i in range(3)]  # [C, 1] each
+    a0 = [j00 * view[0][j] + j02 * view[2][j] for j in range(3)]
+    a1 = [j11 * view[1][j] + j12 * view[2][j] for j in range(3)]
+    # world square root of the covariance M = R_gauss diag(s) (entries [N]); cov2d = (A M)(A M)^T
+    q = quats.t().contiguous()
+    inv_norm = torch.rsqrt((q * q).sum(0))
+    quat = list((q * inv_norm).unbind(0))
+    rot = _rotation_entries(*quat)
+    scale = list(scales.t().contiguous().unbind(0))
+    m_world = [[rot[j][k] * scale[k] for k in range(3)] for j in range(3)]
+    row0 = [a0[0] * m_world[0][k] + a0[1] * m_world[1][k] + a0[2] * m_world[2][k] for k in range(3)]
+    row1 = [a1[0] * m_world[0][k] + a1[1] * m_world[1][k] + a1[2] * m_world[2][k] for k in range(3)]
+    cov_a = row0[0] * row0[0] + row0[1] * row0[1] + row0[2] * row0[2] + eps2d
+    cov_b = row0[0] * row1[0] + row0[1] * row1[1] + row0[2] * row1[2]
+    cov_c = row1[0] * row1[0] + row1[1] * row1[1] + row1[2] * row1[2] + eps2d
     det = cov_a * cov_c - cov_b * cov_b
     valid = in_range & (det > 0)
-    det_safe = torch.where(valid, det, torch.ones_like(det))
-    conics = torch.stack([cov_c / det_safe, -cov_b / det_safe, cov_a / det_safe], dim=-1)
+    inv_det = 1.0 / torch.where(valid, det, torch.ones_like(det))
+    conics = torch.stack([cov_c * inv_det, -cov_b * inv_det, cov_a * inv_det], dim=-1)
 
     with torch.no_grad():
         half_trace = 0.5 * (cov_a + cov_c)
@@ -137,4 +217,109 @@ def project_gaussians(
         on_screen = (mx + radius > 0) & (mx - radius < width) & (my + radius > 0) & (my - radius < height)
         keep = valid & on_screen & (radius > 0)
         radii = torch.where(keep, radius, torch.zeros_like(radius)).to(torch.int32)
-    return Projection(means2d=means2d, conics=conics, depths=z, radii=radii)
+    return _Terms(
+        x, y, z, in_range, inv_z, u, v, u_free, v_free, u_clamped, v_clamped, fx, fy, j00, j02, j11, j12, view, a0, a1, rot, quat,
+        inv_norm, scale, m_world, row0, row1, cov_a, cov_b, cov_c, valid, inv_det, means2d, conics, radii,
+    )
+
+
+class _ProjectGaussians(torch.autograd.Function):
+    """``_projection_terms`` without autograd, and its backward in closed form (chain rule written
+    out on the same [C, N] rows, in reverse order)."""
+
+    @staticmethod
+    def forward(ctx, means: Tensor, quats: Tensor, scales: Tensor, viewmats: Tensor, Ks: Tensor, settings):  # type: ignore[override]
+        with torch.no_grad():
+            terms = _projection_terms(means, quats, scales, viewmats, Ks, *settings)
+        outputs = terms.means2d, terms.conics, terms.z, terms.radii
+        # ctx must not hold the outputs (a reference cycle through grad_fn: never freed)
+        terms.means2d = terms.conics = terms.z = terms.radii = None  # type: ignore[assignment]
+        ctx.terms = terms
+        ctx.save_for_backward(means)
+        ctx.mark_non_differentiable(outputs[3])
+        return outputs
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_means2d: Tensor, g_conics: Tensor, g_depths: Tensor, _g_radii: Optional[Tensor]):  # type: ignore[override]
+        (means,) = ctx.saved_tensors
+        t = ctx.terms
+        n_cams = g_depths.shape[0]
+        zero = torch.zeros((), dtype=g_depths.dtype, device=g_depths.device)
+
+        def total(rows: Tensor) -> Tensor:  # [C, N] -> [N], summed over cameras
+            return rows.sum(0) if n_cams > 1 else rows[0]
+
+        # conics = (c, -b, a) / det  (det frozen to 1 where invalid)
+        gc0, gc1, gc2 = g_conics[..., 0], g_conics[..., 1], g_conics[..., 2]
+        inv_det = t.inv_det
+        s = (gc0 * t.cov_c - gc1 * t.cov_b + gc2 * t.cov_a) * inv_det * inv_det
+        s = torch.where(t.valid, s, zero)
+        g_a = gc2 * inv_det - s * t.cov_c
+        g_c = gc0 * inv_det - s * t.cov_a
+        g_b = 2.0 * s * t.cov_b - gc1 * inv_det
+        # cov = (A M)(A M)^T: rows of A M
+        g_row0 = [2.0 * g_a * t.row0[k] + g_b * t.row1[k] for k in range(3)]
+        g_row1 = [2.0 * g_c * t.row1[k] + g_b * t.row0[k] for k in range(3)]
+        # A M -> A, M
+        m = t.m_world
+        g_a0 = [g_row0[0] * m[j][0] + g_row0[1] * m[j][1] + g_row0[2] * m[j][2] for j in range(3)]
+        g_a1 = [g_row1[0] * m[j][0] + g_row1[1] * m[j][1] + g_row1[2] * m[j][2] for j in range(3)]
+        g_m = [[total(t.a0[j] * g_row0[k] + t.a1[j] * g_row1[k]) for k in range(3)] for j in range(3)]
+        # A = J R_view -> J, R_view
+        view = t.view
+        g_j00 = g_a0[0] * view[0][0] + g_a0[1] * view[0][1] + g_a0[2] * view[0][2]
+        g_j02 = g_a0[0] * view[2][0] + g_a0[1] * view[2][1] + g_a0[2] * view[2][2]
+        g_j11 = g_a1[0] * view[1][0] + g_a1[1] * view[1][1] + g_a1[2] * view[1][2]
+        g_j12 = g_a1[0] * view[2][0] + g_a1[1] * view[2][1] + g_a1[2] * view[2][2]
+        g_view = [
+            [(g_a0[j] * t.j00).sum(1) for j in range(3)],
+            [(g_a1[j] * t.j11).sum(1) for j in range(3)],
+            [(g_a0[j] * t.j02 + g_a1[j] * t.j12).sum(1) for j in range(3)],
+        ]
+        # J: j00 = fx / z, j02 = -j00 clamp(u), j11 = fy / z, j12 = -j11 clamp(v)
+        fx, fy = t.fx, t.fy
+        g_inv_z = fx * (g_j00 - g_j02 * t.u_clamped) + fy * (g_j11 - g_j12 * t.v_clamped)
+        g_u = torch.where(t.u_free, -g_j02 * t.j00, zero) + fx * g_means2d[..., 0]
+        g_v = torch.where(t.v_free, -g_j12 * t.j11, zero) + fy * g_means2d[..., 1]
+        # u = x / z, v = y / z
+        g_x, g_y = g_u * t.inv_z, g_v * t.inv_z
+        g_inv_z = g_inv_z + g_u * t.x + g_v * t.y
+        g_z = torch.where(t.in_range, -g_inv_z * t.inv_z * t.inv_z, zero) + g_depths
+        # camera position p = R_view m + t
+        g_p = (g_x, g_y, g_z)
+        g_means = torch.stack(
+            [total(g_p[0] * view[0][j] + g_p[1] * view[1][j] + g_p[2] * view[2][j]) for j in range(3)], 1
+        )
+        means_rows = means.t()
+        g_viewmats = torch.zeros(n_cams, 4, 4, dtype=g_depths.dtype, device=g_depths.device)
+        for i in range(3):
+            g_viewmats[:, i, 3] = g_p[i].sum(1)
+            for j in range(3):
+                g_viewmats[:, i, j] = g_view[i][j] + (g_p[i] * means_rows[j]).sum(1)
+        # M = R_gauss diag(s)
+        rot, scale = t.rot, t.scale
+        g_scales = torch.stack([g_m[0][k] * rot[0][k] + g_m[1][k] * rot[1][k] + g_m[2][k] * rot[2][k] for k in range(3)], 1)
+        g_r = [[g_m[j][k] * scale[k] for k in range(3)] for j in range(3)]
+        w, x, y, z = t.quat
+        g_w = 2.0 * (z * (g_r[1][0] - g_r[0][1]) + y * (g_r[0][2] - g_r[2][0]) + x * (g_r[2][1] - g_r[1][2]))
+        g_x = 2.0 * (y * (g_r[0][1] + g_r[1][0]) + z * (g_r[0][2] + g_r[2][0]) + w * (g_r[2][1] - g_r[1][2])) - 4.0 * x * (g_r[1][1] + g_r[2][2])
+        g_y = 2.0 * (x * (g_r[0][1] + g_r[1][0]) + w * (g_r[0][2] - g_r[2][0]) + z * (g_r[1][2] + g_r[2][1])) - 4.0 * y * (g_r[0][0] + g_r[2][2])
+        g_zq = 2.0 * (w * (g_r[1][0] - g_r[0][1]) + x * (g_r[0][2] + g_r[2][0]) + y * (g_r[1][2] + g_r[2][1])) - 4.0 * z * (g_r[0][0] + g_r[1][1])
+        # q_hat = q / |q|: the gradient loses its radial part
+        radial = w * g_w + x * g_x + y * g_y + z * g_zq
+        g_quats = torch.stack(
+            [(g - q * radial) * t.inv_norm for g, q in ((g_w, w), (g_x, x), (g_y, y), (g_zq, z))], 1
+        )
+        return g_means, g_quats, g_scales, g_viewmats, None, None
+
+
+def _rotation_entries(w: Tensor, x: Tensor, y: Tensor, z: Tensor) -> List[List[Tensor]]:
+    """Entries r[i][j] of the rotation matrices of unit wxyz quaternions (rows per entry)."""
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    return [
+        [1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)],
+        [2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)],
+        [2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)],
+    ]

@@ -2,22 +2,28 @@
 
 Pipeline: project (``projection.py``), cull, bin every visible Gaussian into the 8x8-pixel tiles
 it can reach (gsplat's 3-sigma square, cut to where its alpha reaches 1/255), sort the
-(tile, depth) pairs with one int64 sort, then composite each tile front to back with gsplat's
-alpha rules.
+(tile, depth) pairs with one int64 sort, then composite front to back with gsplat's alpha rules.
+
+The 8x8 tiles decide *which* Gaussians may touch a pixel (gsplat's rule, so the image does not
+change); the work is done on 4x4-pixel cells: a (Gaussian, tile) pair is composited only in the
+cells of its tile that hold a pixel centre inside the box where its alpha can reach 1/255. For
+the ~1 pixel Gaussians of a dense scene this halves the composited elements.
 
 Inside a tile a Gaussian's exponent -sigma + log(o) is a quadratic polynomial of the pixel
 position relative to the tile centre; its 6 coefficients are computed per (Gaussian, tile)
-intersection with ordinary autograd ops. The compositing is a hand-written
-``torch.autograd.Function`` over blocks of tiles laid out [tiles, pixels, K] (K: intersections
-of the tile, padded to the block's largest tile): the exponents of a block are one matmul
-``[P, 6] @ [tiles, 6, K]``, the colours one bmm, and its backward returns gradients per
-intersection. Work and memory follow the pixels each Gaussian covers; every block holds about
-``BLOCK_ELEMENTS`` elements.
+intersection by ``_IntersectionTable`` (hand-written backward: one scatter-add back to the
+Gaussians). The compositing is a hand-written ``torch.autograd.Function`` over blocks of cells
+laid out [cells, pixels, K] (K: intersections of the cell, padded to the block's largest cell):
+the exponents of a block are one bmm ``[cells, P, 6] @ [cells, 6, K]``, the colours one bmm, and
+its backward returns gradients per intersection. Work and memory follow the pixels each
+Gaussian covers; every block holds about ``BLOCK_ELEMENTS`` elements.
 """
 
 from __future__ import annotations
 
 import math
+import threading
+import weakref
 from dataclasses import dataclass
 from typing import List, Optional, Tuple
 
@@ -37,13 +43,15 @@ from edygs_ns.render.contract import (
 )
 from edygs_ns.render.projection import project_gaussians
 
-#: tile edge in pixels (8x8 measured faster than 16x16 and on par with 4x4 on CPU).
+#: tile edge in pixels: decides which Gaussians may reach a pixel (gsplat's 3-sigma square rule).
 TILE_SIZE = 8
-#: target number of [tile, pixel, Gaussian] elements per compositing block (2 MiB in float32).
+#: target number of [cell, pixel, Gaussian] elements per compositing block (2 MiB in float32).
 BLOCK_ELEMENTS = 1 << 19
 #: forward keeps the weights for backward while they fit in this many bytes; above it the
 #: backward recomputes them block by block.
 SAVE_BUDGET_BYTES = 256 << 20
+#: spare compositing buffers kept per thread between calls (see ``_take``).
+SPARE_BUFFERS = 4
 #: exponents are clamped here before exp (exp(-20) < ALPHA_MIN; CPU exp is slow far below).
 MAX_EXPONENT = 20.0
 #: opacities are clamped to this before the log (only matters for exactly-zero opacities).
@@ -71,6 +79,9 @@ class TileBins:
         tile_starts: [C * T] int64 first intersection of each tile.
         tile_counts: [C * T] int64 number of intersections of each tile.
         tiles_x, tiles_y: tiles per image row / column (T = tiles_x * tiles_y).
+        quadrants: [M] uint8 bit mask of the tile quadrants (bit 2 * row + column) that hold a
+            pixel centre where the Gaussian's alpha can reach ALPHA_MIN; None when the bins were
+            made without conics and opacities (every pixel of the tile may be reached).
     """
 
     flat_ids: Tensor
@@ -79,15 +90,48 @@ class TileBins:
     tile_counts: Tensor
     tiles_x: int
     tiles_y: int
+    quadrants: Optional[Tensor] = None
+
+
+@dataclass
+class _Cells:
+    """The intersections each compositing cell (tile quadrant) sees, depth-sorted inside a cell.
+
+    Cell (c * T + tile) * s^2 + row * s + column (s = cells per tile edge, 1 or 2); the S slots of a
+    cell are contiguous from ``starts``; ``rows`` [S + 1] are intersection (table row) indices, the
+    last one M, the pad row of the table.
+    """
+
+    rows: Tensor
+    starts: Tensor
+    counts: Tensor
+    per_side: int
+    size: int
 
 
 @dataclass
 class _Block:
-    """Tiles composited together; ``slots`` [t, K] index the intersection table (pad = last row)."""
+    """Cells composited together; ``slots`` [t, K] index the intersection table (pad = last row)."""
 
-    tiles: Tensor
+    cells: Tensor
     slots: Tensor
     can_clamp: bool  # some Gaussian of the block has opacity above ALPHA_MAX
+    quadrants: List[Tuple[int, int, int]]  # (quadrant, first, stop): cells [first, stop) are that cell of their tile
+
+
+#: bits of the sort key below the tile id: 31 for the depth (or its rank), 4 for the quadrant mask.
+_DEPTH_SHIFT = 4
+_TILE_SHIFT = 35
+
+
+def _depth_keys(depths: Tensor) -> Tensor:
+    """[V] int64 keys in depth order, < 2^31: the float32 bit pattern of positive depths (monotonic),
+    else the exact rank (float64, or depths <= 0 with a near plane <= 0)."""
+    if depths.dtype == torch.float32 and len(depths) and bool(depths.min() > 0):
+        return depths.view(torch.int32).long()
+    rank = torch.empty(len(depths), dtype=torch.long, device=depths.device)
+    rank[torch.argsort(depths)] = torch.arange(len(depths), device=depths.device)
+    return rank
 
 
 def bin_gaussians(
@@ -105,7 +149,11 @@ def bin_gaussians(
     With ``conics`` and ``opacities`` the tile range is also cut to the tiles with a pixel centre in
     the bounding box of the ellipse where the Gaussian's alpha reaches ALPHA_MIN. The dropped
     (Gaussian, tile) pairs have alpha below ALPHA_MIN at every pixel of the tile, which gsplat
-    skips pixel by pixel, so the image is the same with about a third less work.
+    skips pixel by pixel, so the image is the same with about a third less work. The same box
+    gives the quadrants of each tile the Gaussian can reach (``TileBins.quadrants``).
+
+    Index arithmetic runs in float32 on [V] / [M] rows (exact below 2^24): on CPU int64 division
+    and modulo are ~15x slower, and [V, 2] broadcasts ~10x slower than 1-D ops.
 
     Args:
         means2d: [C, N, 2] pixel centres. radii: [C, N] int, 0 = culled. depths: [C, N].
@@ -115,206 +163,446 @@ def bin_gaussians(
     n_cams, n = radii.shape
     tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
     n_tiles = tiles_x * tiles_y
+    if n_cams * n_tiles >= 1 << (63 - _TILE_SHIFT):
+        raise ValueError(f"rasterize: {n_cams} cameras x {n_tiles} tiles do not fit the sort key")
     device = radii.device
+    f32 = torch.float32
+    half_tile = tile_size // 2 if tile_size % 2 == 0 else 0
     with torch.no_grad():
+        # tile and pixel ranges of each visible Gaussian in the input precision (the rule), then
+        # as small integers in float32
         flat = torch.nonzero(radii.reshape(-1) > 0).squeeze(1)  # [V]
         centre = means2d.detach().reshape(-1, 2).index_select(0, flat)
+        cx, cy = centre[:, 0].contiguous(), centre[:, 1].contiguous()
         rad = radii.reshape(-1).index_select(0, flat).to(centre.dtype)
-        x0 = torch.floor((centre[:, 0] - rad) / tile_size).clamp(0, tiles_x).long()
-        x1 = torch.ceil((centre[:, 0] + rad) / tile_size).clamp(0, tiles_x).long()
-        y0 = torch.floor((centre[:, 1] - rad) / tile_size).clamp(0, tiles_y).long()
-        y1 = torch.ceil((centre[:, 1] + rad) / tile_size).clamp(0, tiles_y).long()
+        x0 = torch.floor((cx - rad) / tile_size).clamp_(0, tiles_x).to(f32)
+        x1 = torch.ceil((cx + rad) / tile_size).clamp_(0, tiles_x).to(f32)
+        y0 = torch.floor((cy - rad) / tile_size).clamp_(0, tiles_y).to(f32)
+        y1 = torch.ceil((cy + rad) / tile_size).clamp_(0, tiles_y).to(f32)
+        box = None
         if conics is not None and opacities is not None:
             # tiles with a pixel centre inside the bounding box of {alpha >= ALPHA_MIN}
-            level = torch.log(opacities.detach().to(centre.dtype).clamp(min=MIN_OPACITY) / ALPHA_MIN)[flat % n]
+            op = opacities.detach().to(centre.dtype).clamp(min=MIN_OPACITY)
+            level = torch.log(op / ALPHA_MIN).index_select(0, flat % n)
             conic_v = conics.detach().reshape(-1, 3).index_select(0, flat)
-            det = conic_v[:, 0] * conic_v[:, 2] - conic_v[:, 1] ** 2
-            reach = 2.0 * (level + CULL_MARGIN).clamp(min=0.0) / det
-            half = torch.stack([conic_v[:, 2], conic_v[:, 0]], 1).mul(reach[:, None]).sqrt()  # [V, 2] pixels
-            first_px = torch.ceil(centre - half - PIXEL_CENTRE)
-            last_px = torch.floor(centre + half - PIXEL_CENTRE)
-            first_tile = torch.div(first_px, tile_size, rounding_mode="floor").long()
-            last_tile = torch.div(last_px, tile_size, rounding_mode="floor").long() + 1
-            x0, y0 = torch.maximum(x0, first_tile[:, 0]), torch.maximum(y0, first_tile[:, 1])
-            x1 = torch.maximum(torch.minimum(x1, last_tile[:, 0]), x0)
-            y1 = torch.maximum(torch.minimum(y1, last_tile[:, 1]), y0)
+            ca, cb, cc = conic_v[:, 0], conic_v[:, 1], conic_v[:, 2]
+            reach = 2.0 * (level + CULL_MARGIN).clamp_(min=0.0) / (ca * cc - cb * cb)
+            half_x, half_y = (cc * reach).sqrt_(), (ca * reach).sqrt_()
+            # first / last pixel index with a centre in the box (clamped just outside the image)
+            limit = float(max(width, height) + tile_size)
+            fx = torch.ceil(cx - half_x - PIXEL_CENTRE).clamp_(-limit, limit).to(f32)
+            lx = torch.floor(cx + half_x - PIXEL_CENTRE).clamp_(-limit, limit).to(f32)
+            fy = torch.ceil(cy - half_y - PIXEL_CENTRE).clamp_(-limit, limit).to(f32)
+            ly = torch.floor(cy + half_y - PIXEL_CENTRE).clamp_(-limit, limit).to(f32)
+            x0 = torch.maximum(x0, torch.floor(fx / tile_size))
+            y0 = torch.maximum(y0, torch.floor(fy / tile_size))
+            x1 = torch.maximum(torch.minimum(x1, torch.floor(lx / tile_size) + 1), x0)
+            y1 = torch.maximum(torch.minimum(y1, torch.floor(ly / tile_size) + 1), y0)
+            box = [fx, fy, lx, ly]
         nx = x1 - x0
-        counts = nx * (y1 - y0)
-        # depth rank of every visible Gaussian: exact ordering in any dtype, fits in 32 bits
-        rank = torch.empty_like(flat)
-        rank[torch.argsort(depths.detach().reshape(-1).index_select(0, flat))] = torch.arange(len(flat), device=device)
-        first = torch.cumsum(counts, 0) - counts
-        base = torch.div(flat, n, rounding_mode="floor") * n_tiles + y0 * tiles_x + x0  # tile of the first corner
+        counts = (nx * (y1 - y0)).long()
+        # per visible Gaussian, then one 1-D gather per intersection (fastest on CPU)
         owner = torch.repeat_interleave(torch.arange(len(flat), device=device), counts)  # [M]
-        per_owner = torch.stack([base, nx, first, rank], 1).index_select(0, owner)  # one gather
-        local = torch.arange(len(owner), device=device) - per_owner[:, 2]
-        dy = torch.div(local, per_owner[:, 1], rounding_mode="floor")
-        dx = local - dy * per_owner[:, 1]
-        tile = per_owner[:, 0] + dy * tiles_x + dx
-        keys, order = torch.sort((tile << 32) | per_owner[:, 3])
-        tile_counts = torch.bincount(keys >> 32, minlength=n_cams * n_tiles)
+        first = torch.cumsum(counts, 0) - counts
+        base = torch.div(flat, n, rounding_mode="floor") * n_tiles  # first tile of the camera
+        depth_key = _depth_keys(depths.detach().reshape(-1).index_select(0, flat)) << _DEPTH_SHIFT
+        ox0, oy0, onx, obox = (
+            x0.index_select(0, owner), y0.index_select(0, owner), nx.index_select(0, owner),
+            [v.index_select(0, owner) for v in box] if box is not None else None,
+        )
+        local = (torch.arange(len(owner), device=device) - first.index_select(0, owner)).to(f32)
+        dy = torch.floor((local + 0.5) / onx)
+        col, row = ox0 + (local - dy * onx), oy0 + dy  # tile column / row of each intersection
+        key = ((base.index_select(0, owner) + (row * tiles_x + col).long()) << _TILE_SHIFT) | depth_key.index_select(0, owner)
+        if obox is not None and half_tile:
+            # quadrants of the tile with a pixel centre in the box: split at the tile's middle pixel
+            mid_x, mid_y = col * tile_size + half_tile, row * tile_size + half_tile
+            ofx, ofy, olx, oly = obox
+            left, right = ofx < mid_x, olx >= mid_x
+            top, bottom = ofy < mid_y, oly >= mid_y
+            u8 = torch.uint8
+            quad = (top & left).to(u8) | ((top & right).to(u8) << 1) | ((bottom & left).to(u8) << 2) | ((bottom & right).to(u8) << 3)
+            key |= quad.long()
+        keys, order = torch.sort(key)
+        tile_ids = keys >> _TILE_SHIFT
+        tile_counts = torch.bincount(tile_ids, minlength=n_cams * n_tiles)
         tile_starts = torch.cumsum(tile_counts, 0) - tile_counts
+        quadrants = (keys & ((1 << _DEPTH_SHIFT) - 1)).to(torch.uint8) if obox is not None and half_tile else None
     return TileBins(
-        flat.index_select(0, owner.index_select(0, order)), keys >> 32, tile_starts, tile_counts, tiles_x, tiles_y
+        flat.index_select(0, owner.index_select(0, order)), tile_ids, tile_starts, tile_counts, tiles_x, tiles_y, quadrants
     )
 
 
-def _plan_blocks(bins: TileBins, tile_size: int, opacity_of_isect: Tensor) -> List[_Block]:
-    """Group non-empty tiles (largest first) into blocks of about BLOCK_ELEMENTS elements.
+def _split_cells(bins: TileBins, tile_size: int) -> _Cells:
+    """The slots of every cell (tile quadrant): the intersections of its tile that reach the quadrant."""
+    device = bins.flat_ids.device
+    n_isect = len(bins.flat_ids)
+    if tile_size % 2 != 0:
+        return _Cells(torch.arange(n_isect + 1, device=device), bins.tile_starts, bins.tile_counts, 1, tile_size)
+    n_tiles = len(bins.tile_counts)
+    with torch.no_grad():
+        rows, counts = [], []
+        for quadrant in range(4):  # [M] uint8 bit tests: 8x cheaper than int64
+            if bins.quadrants is None:
+                rows.append(torch.arange(n_isect, device=device))
+                counts.append(bins.tile_counts)
+                continue
+            # depth order inside a tile is kept: nonzero lists the intersections in sorted order
+            hit = torch.nonzero((bins.quadrants & (1 << quadrant)) != 0).squeeze(1)
+            rows.append(hit)
+            counts.append(torch.bincount(bins.tile_ids.index_select(0, hit), minlength=n_tiles))
+        # slots are ordered (quadrant, tile): exclusive cumsum in that order, then cell order
+        counts_qt = torch.cat(counts)
+        starts = (torch.cumsum(counts_qt, 0) - counts_qt).view(4, n_tiles).t().reshape(-1)
+        counts_cell = counts_qt.view(4, n_tiles).t().reshape(-1)
+        rows.append(torch.full((1,), n_isect, dtype=torch.long, device=device))  # the pad row
+    return _Cells(torch.cat(rows), starts, counts_cell, 2, tile_size // 2)
+
+
+def _plan_blocks(cells: _Cells, opacity_of_isect: Optional[Tensor]) -> List[_Block]:
+    """Group non-empty cells (largest first) into blocks of about BLOCK_ELEMENTS elements.
+
+    Inside a block the cells are ordered by quadrant, then id: the pixels of one quadrant share a
+    monomial basis (one matmul per quadrant), and the rows of a quadrant's cells ascend
+    (cache-friendly gathers and scatters).
 
     Args:
-        opacity_of_isect: [M + 1] opacity of each intersection's Gaussian (0 for the pad row).
+        opacity_of_isect: [M + 1] opacity of each intersection's Gaussian (0 for the pad row), or
+            None when no opacity exceeds ALPHA_MAX (no block can clamp).
     """
-    pixels = tile_size * tile_size
-    counts = bins.tile_counts
-    pad = len(bins.flat_ids)
+    pixels = cells.size * cells.size
+    n_sub = cells.per_side * cells.per_side
+    counts = cells.counts
+    pad_slot = len(cells.rows) - 1
     order = torch.argsort(counts, descending=True)
-    order = order[: int((counts > 0).sum())]
-    sorted_counts = counts[order].tolist()
+    sorted_counts = counts.index_select(0, order).tolist()
+    n_used = sorted_counts.index(0) if 0 in sorted_counts else len(sorted_counts)  # descending: zeros last
     blocks: List[_Block] = []
-    start = 0
-    while start < len(sorted_counts):
-        k = sorted_counts[start]
-        stop = min(len(sorted_counts), start + max(1, BLOCK_ELEMENTS // (pixels * k)))
-        tiles = order[start:stop]
+    begin = 0
+    while begin < n_used:
+        k = sorted_counts[begin]
+        stop = min(n_used, begin + max(1, BLOCK_ELEMENTS // (pixels * k)))
+        ids = order[begin:stop]
+        quadrant = ids % n_sub
+        ids = ids.index_select(0, torch.argsort(quadrant * len(counts) + ids))
+        per_quadrant = torch.bincount(quadrant, minlength=n_sub).tolist()
         slot = torch.arange(k, device=counts.device)
-        slots = torch.where(slot < counts[tiles, None], bins.tile_starts[tiles, None] + slot, pad)
-        can_clamp = bool(opacity_of_isect[slots].max() > ALPHA_MAX)
-        blocks.append(_Block(tiles, slots, can_clamp))
-        start = stop
+        pos = torch.where(slot < counts.index_select(0, ids)[:, None], cells.starts.index_select(0, ids)[:, None] + slot, pad_slot)
+        slots = cells.rows.index_select(0, pos.view(-1)).view(pos.shape)
+        can_clamp = opacity_of_isect is not None and bool(opacity_of_isect.index_select(0, slots.view(-1)).max() > ALPHA_MAX)
+        bounds, first = [], 0
+        for q, count in enumerate(per_quadrant):
+            if count:
+                bounds.append((q, first, first + count))
+            first += count
+        blocks.append(_Block(ids, slots, can_clamp, bounds))
+        begin = stop
     return blocks
 
 
-def _pixel_basis(tile_size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
-    """[P, 6] monomials (1, x, y, x^2, y^2, xy) of pixel centres relative to the tile centre."""
+def _cell_basis(tile_size: int, cell_size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """[s^2, P, 6] monomials (1, x, y, x^2, y^2, xy) of each cell's pixel centres, relative to the tile centre."""
+    side = tile_size // cell_size
     offs = torch.arange(tile_size, dtype=dtype, device=device) + PIXEL_CENTRE - tile_size / 2.0
-    py, px = torch.meshgrid(offs, offs, indexing="ij")
-    px, py = px.reshape(-1), py.reshape(-1)
+    py, px = torch.meshgrid(offs, offs, indexing="ij")  # [tile, tile]
+    # [cell row, y in cell, cell column, x in cell] -> [cell row, cell column, y, x]
+    px = px.reshape(side, cell_size, side, cell_size).permute(0, 2, 1, 3).reshape(side * side, -1)
+    py = py.reshape(side, cell_size, side, cell_size).permute(0, 2, 1, 3).reshape(side * side, -1)
     return torch.stack([torch.ones_like(px), px, py, px * px, py * py, px * py], dim=-1)
 
 
-def exponent_coefficients(
-    means2d: Tensor, conics: Tensor, log_opacity: Tensor, centres: Tensor
-) -> Tensor:
-    """Coefficients of log(alpha) = log(o) - sigma as a polynomial of the pixel offset from a centre.
+class _Spares(threading.local):
+    """Per-thread flat CPU buffers the rasteriser reuses between calls."""
+
+    def __init__(self) -> None:
+        self.buffers: List[Tensor] = []
+
+
+_SPARES = _Spares()
+
+
+def _take(numel: int, like: Tensor) -> Tensor:
+    """A flat buffer of >= numel elements of like's dtype and device, a spare one when one fits.
+
+    Fresh memory is expensive on CPU: glibc hands large freed blocks back to the kernel, and
+    faulting the pages in again cost ~20% of a forward+backward here. Spares are best-fit.
+    """
+    if like.device.type == "cpu":
+        spares = _SPARES.buffers
+        fits = [i for i, b in enumerate(spares) if b.dtype == like.dtype and b.numel() >= numel]
+        if fits:
+            return spares.pop(min(fits, key=lambda i: spares[i].numel()))
+    return like.new_empty(max(numel, 1))
+
+
+def _give(buffer: Optional[Tensor]) -> None:
+    """Return a buffer from ``_take`` once nothing uses it; keeps the largest SPARE_BUFFERS."""
+    if buffer is not None and buffer.device.type == "cpu":
+        spares = _SPARES.buffers
+        spares.append(buffer)
+        if len(spares) > SPARE_BUFFERS:
+            spares.pop(min(range(len(spares)), key=lambda i: spares[i].numel()))
+
+
+def _give_kept(holder: List[Optional[Tensor]]) -> None:
+    """Give back the buffer a forward kept for its backward (once: the holder is emptied)."""
+    buffer, holder[0] = holder[0], None
+    _give(buffer)
+
+
+class _Carver:
+    """Consecutive contiguous views of a flat buffer."""
+
+    def __init__(self, buffer: Tensor) -> None:
+        self.buffer, self.offset = buffer, 0
+
+    def __call__(self, *shape: int) -> Tensor:
+        numel = math.prod(shape)
+        view = self.buffer[self.offset : self.offset + numel].view(shape)
+        self.offset += numel
+        return view
+
+
+@dataclass
+class _Plan:
+    """What the rasterising Function needs besides the differentiable inputs."""
+
+    flat_ids: Tensor  # [M] Gaussian (c * N + n) of each intersection
+    centre_x: Tensor  # [M] pixel centre of each intersection's tile
+    centre_y: Tensor
+    blocks: List[_Block]
+    n_cells: int
+    basis: Tensor  # [s^2, P, 6] pixel monomials per quadrant
+
+
+def _block_forward(
+    basis2: Tensor, rows: Tensor, block: _Block, need_grad: bool, alpha: Tensor, weights: Tensor, carve: _Carver
+) -> Optional[Tensor]:
+    """Compositing weights of one block, gsplat's rules, written into ``alpha`` and ``weights``.
+
+    Layout [P, t, K] (pixel, cell, intersection): the exponents are one [P, 6] @ [6, t K] matmul
+    and the scans run along the contiguous last axis.
 
     Args:
-        means2d: [M, 2] Gaussian centres. conics: [M, 3] (a, b, c). log_opacity: [M].
-        centres: [M, 2] tile centres, pixels.
+        basis2: [s^2, P, 6] pixel monomials of each quadrant times log2(e) (exp2 is about twice
+            as fast as exp on CPU).
+        rows: [t K, 6 + F] gathered intersection rows (coefficients, features).
+        alpha: [P, t, K] output: alpha / (1 - alpha) when need_grad, else alpha.
+        weights: [P, t, K] output: w = alpha * T_before.
+        carve: workspace for two [P, t, K + 1] temporaries.
 
     Returns:
-        [M, 6] coefficients of (1, x, y, x^2, y^2, xy).
+        For blocks where alpha can clamp (and need_grad), the [P, t, K] mask of unclamped alphas.
     """
-    mx, my = (means2d - centres).unbind(-1)
-    ca, cb, cc = conics.unbind(-1)
-    return torch.stack(
-        [
-            log_opacity - 0.5 * ca * mx * mx - 0.5 * cc * my * my - cb * mx * my,
-            ca * mx + cb * my,
-            cc * my + cb * mx,
-            -0.5 * ca,
-            -0.5 * cc,
-            -cb,
-        ],
-        dim=-1,
-    )
-
-
-def _block_forward(basis2: Tensor, rows: Tensor, can_clamp: bool, need_grad: bool) -> Tuple[Tensor, Tensor, Optional[Tensor]]:
-    """Compositing weights of one block, gsplat's rules.
-
-    Args:
-        basis2: [P, 6] pixel monomials times log2(e) (exp2 is about twice as fast as exp on CPU).
-        rows: [t, K, 6 + F] gathered intersection rows (coefficients, features).
-
-    Returns:
-        weights w = alpha * T_before [t, P, K]; alpha / (1 - alpha) [t, P, K] (meaningful only
-        when need_grad); for blocks where alpha can clamp, the [t, P, K] mask of unclamped alphas.
-    """
-    alpha = torch.matmul(basis2, rows[..., :N_COEFFS].transpose(1, 2))  # log2(alpha)
+    n_pix, n_cells, k = alpha.shape
+    coeffs = rows[:, :N_COEFFS].t()  # [6, t K]
+    for quadrant, first, stop in block.quadrants:  # log2(alpha)
+        torch.mm(basis2[quadrant], coeffs[:, first * k : stop * k], out=alpha[:, first:stop].view(n_pix, -1))
     F.threshold_(alpha, -MAX_EXPONENT * LOG2_E, -MAX_EXPONENT * LOG2_E)  # clamp from below
     alpha.exp2_()
     F.threshold_(alpha, ALPHA_MIN, 0.0)  # gsplat skips alpha < 1/255
     unclamped = None
-    if can_clamp:
+    if block.can_clamp:
         unclamped = alpha < ALPHA_MAX if need_grad else None
         F.hardtanh_(alpha, 0.0, ALPHA_MAX)
-    n_tiles, n_pix, k = alpha.shape
-    trans = alpha.new_empty(n_tiles, n_pix, k + 1)  # [..., j] = transmittance before Gaussian j
-    trans[..., 0] = 1.0
-    torch.neg(alpha, out=trans[..., 1:]).add_(1.0)
-    torch.cumprod(trans, -1, out=trans)
-    weights = alpha * trans[..., :-1]
+    one_minus, trans = carve(n_pix, n_cells, k + 1), carve(n_pix, n_cells, k + 1)
+    one_minus[..., 0] = 1.0  # then 1 - alpha_j at j + 1
+    torch.sub(one_minus[..., :1], alpha, out=one_minus[..., 1:])
+    torch.cumprod(one_minus, -1, out=trans)  # [..., j] = transmittance before Gaussian j
+    torch.mul(alpha, trans[..., :-1], out=weights)
     if float(trans[..., -1].min()) <= TRANSMITTANCE_MIN:
         # a pixel stops before the Gaussian that would take its transmittance to <= T_min
         keep = F.threshold_(trans, TRANSMITTANCE_MIN, 0.0).sign_()[..., 1:]  # reuses the buffer
         weights.mul_(keep)
         alpha.mul_(keep)
     if need_grad:
-        alpha.div_(torch.neg(alpha, out=trans[..., 1:]).add_(1.0))
-    return weights, alpha, unclamped
+        alpha.div_(one_minus[..., 1:])
+    return unclamped
 
 
-class _Composite(torch.autograd.Function):
-    """Front-to-back compositing of tile blocks from the [M + 1, 6 + F] intersection table."""
+def _build_table(means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, depths: Tensor,
+                 flat: Tensor, plan: "_Plan", table: Tensor, geometry: Tensor) -> None:
+    """Fill the [M + 1, 6 + D + 2] intersection table and the [7, M] geometry rows
+    (dx, dy, a, b, c, (Q d)_x, (Q d)_y), column by column ([M] gathers and ops: fastest on CPU)."""
+    n_isect, n_feat = len(flat), features.shape[-1]
+    n = opacities.shape[0]
+    with torch.no_grad():
+        gauss = flat if means2d.shape[0] == 1 else flat % n
+        dx, dy, ca, cb, cc, qx, qy = geometry
+        torch.index_select(means2d[..., 0].reshape(-1), 0, flat, out=dx).sub_(plan.centre_x)
+        torch.index_select(means2d[..., 1].reshape(-1), 0, flat, out=dy).sub_(plan.centre_y)
+        for i, dst in enumerate((ca, cb, cc)):
+            torch.index_select(conics[..., i].reshape(-1), 0, flat, out=dst)
+        torch.mul(ca, dx, out=qx).addcmul_(cb, dy)  # Q d
+        torch.mul(cb, dx, out=qy).addcmul_(cc, dy)
+        log_o = torch.log(opacities.clamp(min=MIN_OPACITY)).index_select(0, gauss)
+        table[:n_isect, 0] = log_o.addcmul_(dx, qx, value=-0.5).addcmul_(dy, qy, value=-0.5)
+        table[:n_isect, 1] = qx
+        table[:n_isect, 2] = qy
+        table[:n_isect, 3] = ca * -0.5
+        table[:n_isect, 4] = cc * -0.5
+        table[:n_isect, 5] = -cb
+        table[:n_isect, N_COEFFS : N_COEFFS + n_feat] = features.reshape(-1, n_feat).index_select(
+            0, flat if features.dim() == 3 else gauss
+        )
+        table[:n_isect, -2] = depths.reshape(-1).index_select(0, flat)
+        table[:n_isect, -1] = 1.0
+        table[n_isect] = 0.0
+        table[n_isect, 0] = PAD_EXPONENT
+
+
+class _Rasterize(torch.autograd.Function):
+    """Intersection table and front-to-back compositing of cell blocks.
+
+    Table rows [M + 1, 6 + D + 2]: exponent coefficients of the tile-local pixel position, the
+    features, depth and 1 (for alpha); the last row is padding. The backward turns the row
+    gradients into gradients of the per-Gaussian inputs in closed form and sums them per
+    Gaussian with one index_add (autograd of the same ops costs ~10x more). One Function, so
+    every large buffer comes from (and returns to) the per-thread spares.
+    """
 
     @staticmethod
-    def forward(ctx, table: Tensor, blocks: List[_Block], n_tiles: int, tile_size: int) -> Tensor:  # type: ignore[override]
-        basis2 = _pixel_basis(tile_size, table.dtype, table.device) * LOG2_E
-        n_feat = table.shape[1] - N_COEFFS
-        out = table.new_zeros(n_tiles, n_feat, basis2.shape[0])  # channels before pixels: fast bmm
-        need_grad = bool(ctx.needs_input_grad[0])
-        n_elements = sum(b.slots.numel() for b in blocks) * basis2.shape[0]
-        save = need_grad and 2 * n_elements * table.element_size() <= SAVE_BUDGET_BYTES
+    def forward(ctx, means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, depths: Tensor,  # type: ignore[override]
+                plan: _Plan) -> Tensor:
+        n_cams, n = means2d.shape[0], opacities.shape[0]
+        flat = plan.flat_ids
+        n_isect, n_feat = len(flat), features.shape[-1]
+        n_cols = N_COEFFS + n_feat + 2
+        n_pix = plan.basis.shape[1]
+        need_grad = bool(any(ctx.needs_input_grad[:5]))
+        sizes = [b.slots.numel() * n_pix for b in plan.blocks]  # t K P
+        save = need_grad and 2 * sum(sizes) * means2d.element_size() <= SAVE_BUDGET_BYTES
+        kept = _take((n_isect + 1) * n_cols + 7 * n_isect + (2 * sum(sizes) if save else 0), means2d)
+        carve_kept = _Carver(kept)
+        table = carve_kept(n_isect + 1, n_cols)
+        geometry = carve_kept(7, n_isect)  # dx, dy, a, b, c, (Q d)_x, (Q d)_y
+
+        _build_table(means2d, conics, opacities, features, depths, flat, plan, table, geometry)
+
+        # ---- compositing
+        basis2 = plan.basis * LOG2_E
+        out = means2d.new_zeros(plan.n_cells, n_cols - N_COEFFS, n_pix)  # channels before pixels: fast bmm
+        # per block: rows, 2 [P, t, K + 1] temporaries and, unless kept, alpha and weights
+        work = max((b.slots.numel() * n_cols + 2 * (s + b.slots.shape[0] * n_pix) + (0 if save else 2 * s)
+                    for b, s in zip(plan.blocks, sizes)), default=0)
+        workspace = _take(work, means2d)
         saved: List[Tuple[Tensor, Tensor, Optional[Tensor]]] = []
-        for block in blocks:
-            rows = _gather_rows(table, block.slots)
-            weights, ratio, unclamped = _block_forward(basis2, rows, block.can_clamp, need_grad)
-            out.index_copy_(0, block.tiles, torch.bmm(rows[..., N_COEFFS:].transpose(1, 2), weights.transpose(1, 2)))
+        for block in plan.blocks:
+            t, k = block.slots.shape
+            carve = _Carver(workspace)
+            rows = torch.index_select(table, 0, block.slots.view(-1), out=carve(t * k, n_cols))
+            alpha, weights = (carve_kept if save else carve)(n_pix, t, k), (carve_kept if save else carve)(n_pix, t, k)
+            unclamped = _block_forward(basis2, rows, block, need_grad, alpha, weights, carve)
+            feats_t = rows.view(t, k, n_cols)[..., N_COEFFS:].transpose(1, 2)  # [t, F, K]
+            out.index_copy_(0, block.cells, torch.bmm(feats_t, weights.permute(1, 2, 0)))
             if save:
-                saved.append((weights, ratio, unclamped))
-        ctx.blocks, ctx.saved, ctx.tile_size = blocks, saved, tile_size
-        ctx.save_for_backward(table)
+                saved.append((weights, alpha, unclamped))
+        _give(workspace)
+        ctx.plan, ctx.saved, ctx.kept = plan, saved, [kept]
+        ctx.save_for_backward(means2d, conics, opacities, features, depths)
+        if need_grad:  # back to the spares after backward, or when the graph is dropped without one
+            weakref.finalize(ctx, _give_kept, ctx.kept).atexit = False
+        else:
+            _give_kept(ctx.kept)
         return out.transpose(1, 2)
 
     @staticmethod
+    @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out: Tensor):  # type: ignore[override]
-        (table,) = ctx.saved_tensors
-        basis = _pixel_basis(ctx.tile_size, table.dtype, table.device)
-        grad_table = table.new_zeros(table.shape[1], table.shape[0])  # [columns, rows]
+        means2d, conics, opacities, features, depths = ctx.saved_tensors
+        plan, kept = ctx.plan, ctx.kept[0]
+        n_cams, n, feat_shape = means2d.shape[0], opacities.shape[0], features.shape
+        flat = plan.flat_ids
+        n_isect, n_feat = len(flat), feat_shape[-1]
+        n_cols = N_COEFFS + n_feat + 2
+        n_pix = plan.basis.shape[1]
+        if kept is None:  # a second backward through the graph (retain_graph): rebuild
+            kept = _take((n_isect + 1) * n_cols + 7 * n_isect, means2d)
+            carve_kept = _Carver(kept)
+            table, geometry = carve_kept(n_isect + 1, n_cols), carve_kept(7, n_isect)
+            _build_table(means2d, conics, opacities, features, depths, flat, plan, table, geometry)
+        carve_kept = _Carver(kept)
+        table = carve_kept(n_isect + 1, n_cols)
+        dx, dy, ca, cb, cc, qx, qy = carve_kept(7, n_isect)
         grad_out = grad_out.contiguous()
-        for i, block in enumerate(ctx.blocks):
-            rows = _gather_rows(table, block.slots)
-            if ctx.saved:
-                weights, ratio, unclamped = ctx.saved[i]
+        recompute = not ctx.saved
+        # per block: rows, h, g, its cumsum (reused for the per-slot gradients), [t, F, K] feature
+        # gradients (and the forward's buffers when recomputing)
+        work = max(
+            (b.slots.numel() * (n_cols + 3 * n_pix + n_feat + 2)
+             + (4 * b.slots.numel() * n_pix + 2 * b.slots.shape[0] * n_pix if recompute else 0)
+             for b in plan.blocks),
+            default=0,
+        )
+        work = max(work, (7 + n_feat) * n_isect)
+        workspace = _take(work + n_cols * (n_isect + 1), table)
+        grad_table = workspace[work : work + n_cols * (n_isect + 1)].view(n_cols, n_isect + 1).zero_()  # [columns, rows]
+        for i, block in enumerate(plan.blocks):
+            t, k = block.slots.shape
+            carve = _Carver(workspace)
+            rows = torch.index_select(table, 0, block.slots.view(-1), out=carve(t * k, n_cols))
+            feats_t = rows.view(t, k, n_cols)[..., N_COEFFS:].transpose(1, 2)  # [t, F, K]
+            h, g, later, g_feat = carve(t, n_pix, k), carve(n_pix, t, k), carve(n_pix, t, k), carve(t, n_feat + 2, k)
+            if recompute:
+                ratio, weights = carve(n_pix, t, k), carve(n_pix, t, k)
+                unclamped = _block_forward(plan.basis * LOG2_E, rows, block, True, ratio, weights, carve)
             else:
-                weights, ratio, unclamped = _block_forward(basis * LOG2_E, rows, block.can_clamp, True)
-            g_pix = grad_out.index_select(0, block.tiles)  # [t, P, F]
+                weights, ratio, unclamped = ctx.saved[i]
+            g_pix = grad_out.index_select(0, block.cells)  # [t, P, F]
             # with h_k = dL/dC . f_k:  dL/dalpha_k = T_k h_k - (sum_{j>k} w_j h_j) / (1 - alpha_k);
             # dalpha/dlog(alpha) = alpha, so dL/dlog(alpha_k) = w_k h_k - ratio_k * sum_{j>k} w_j h_j
-            g = torch.bmm(g_pix, rows[..., N_COEFFS:].transpose(1, 2)).mul_(weights)  # [t, P, K]
-            later = torch.cumsum(g, -1)
-            later.sub_(later[..., -1:].clone()).mul_(ratio)
-            g.add_(later)
+            torch.bmm(g_pix, feats_t, out=h)
+            torch.mul(h.permute(1, 0, 2), weights, out=g)  # [P, t, K]
+            torch.cumsum(g, -1, out=later)
+            later.sub_(later[..., -1:].clone())
+            g.addcmul_(later, ratio)
             if unclamped is not None:
                 g.mul_(unclamped)
-            g_rows = torch.cat([torch.matmul(basis.t(), g), torch.bmm(g_pix.transpose(1, 2), weights)], 1)  # [t, 6+F, K]
-            grad_table.index_copy_(1, block.slots.reshape(-1), g_rows.transpose(0, 1).reshape(table.shape[1], -1))
-        ctx.saved = None
-        grad_table[:, -1] = 0.0  # the pad row (several slots wrote to it)
-        return grad_table.t(), None, None, None
+            per_slot = later.view(-1)[: n_cols * t * k].view(n_cols, t * k)  # later is free again
+            for quadrant, first, stop in block.quadrants:
+                torch.mm(plan.basis[quadrant].t(), g[:, first:stop].view(n_pix, -1), out=per_slot[:N_COEFFS, first * k : stop * k])
+            torch.bmm(g_pix.transpose(1, 2), weights.permute(1, 0, 2), out=g_feat)
+            per_slot[N_COEFFS:].view(n_feat + 2, t, k).copy_(g_feat.transpose(0, 1))
+            grad_table.index_add_(1, block.slots.view(-1), per_slot)
+        ctx.saved = None  # a second backward (retain_graph) recomputes
+        ctx.kept[0] = None
+
+        # ---- rows -> Gaussians: derivatives of (c0 .. c5) = (log o - d.Qd / 2, Qd, -a/2, -c/2, -b)
+        # with d = mean - tile centre, then one index_add per Gaussian
+        g0, g1, g2, g3, g4, g5 = grad_table[:N_COEFFS, :n_isect]
+        per_isect = workspace[: (7 + n_feat) * n_isect].view(7 + n_feat, n_isect)  # the blocks are done
+        torch.mul(ca, g1, out=per_isect[0]).addcmul_(cb, g2).addcmul_(g0, qx, value=-1.0)  # d / d mean_x
+        torch.mul(cb, g1, out=per_isect[1]).addcmul_(cc, g2).addcmul_(g0, qy, value=-1.0)  # d / d mean_y
+        half_g0 = g0 * 0.5
+        torch.addcmul(g1, half_g0, dx, value=-1.0, out=per_isect[2]).mul_(dx).add_(g3, alpha=-0.5)  # d / d a
+        torch.addcmul(g1, g0, dx, value=-1.0, out=per_isect[3]).mul_(dy).addcmul_(dx, g2).sub_(g5)  # d / d b
+        torch.addcmul(g2, half_g0, dy, value=-1.0, out=per_isect[4]).mul_(dy).add_(g4, alpha=-0.5)  # d / d c
+        per_isect[5] = grad_table[-2, :n_isect]  # d / d depth
+        per_isect[6] = g0  # d / d log(opacity)
+        per_isect[7:] = grad_table[N_COEFFS : N_COEFFS + n_feat, :n_isect]
+        per_gauss = per_isect.new_zeros(7 + n_feat, n_cams * n).index_add_(1, flat, per_isect)
+        _give(workspace)
+        _give(kept)
+        grad_means2d = per_gauss[0:2].t().reshape(n_cams, n, 2)
+        grad_conics = per_gauss[2:5].t().reshape(n_cams, n, 3)
+        grad_depths = per_gauss[5].reshape(n_cams, n)
+        grad_log_o = per_gauss[6].reshape(n_cams, n).sum(0)
+        grad_opacities = torch.where(opacities >= MIN_OPACITY, grad_log_o / opacities.clamp(min=MIN_OPACITY), 0.0)
+        grad_features = per_gauss[7:].t()
+        if len(feat_shape) == 3:
+            grad_features = grad_features.reshape(feat_shape)
+        else:
+            grad_features = grad_features.reshape(n_cams, n, n_feat).sum(0)
+        return grad_means2d, grad_conics, grad_opacities, grad_features, grad_depths, None
 
 
-def _gather_rows(table: Tensor, slots: Tensor) -> Tensor:
-    """[t, K, columns] rows of the table (index_select is faster than advanced indexing on CPU)."""
-    return table.index_select(0, slots.reshape(-1)).view(*slots.shape, table.shape[1])
-
-
-def _tiles_to_image(tiled: Tensor, n_cams: int, bins: TileBins, width: int, height: int, tile_size: int) -> Tensor:
-    """[C*T, P, F] tile layout -> [C, H, W, F] image."""
-    n_feat = tiled.shape[-1]
-    img = tiled.reshape(n_cams, bins.tiles_y, bins.tiles_x, tile_size, tile_size, n_feat)
-    img = img.permute(0, 1, 3, 2, 4, 5).reshape(n_cams, bins.tiles_y * tile_size, bins.tiles_x * tile_size, n_feat)
+def _cells_to_image(tiled: Tensor, n_cams: int, bins: TileBins, cells: _Cells, width: int, height: int) -> Tensor:
+    """[C*T*s^2, P, F] cell layout -> [C, H, W, F] image."""
+    n_feat, side, size = tiled.shape[-1], cells.per_side, cells.size
+    img = tiled.reshape(n_cams, bins.tiles_y, bins.tiles_x, side, side, size, size, n_feat)
+    img = img.permute(0, 1, 3, 5, 2, 4, 6, 7).reshape(
+        n_cams, bins.tiles_y * side * size, bins.tiles_x * side * size, n_feat
+    )
     return img[:, :height, :width]
 
 
@@ -361,36 +649,27 @@ def rasterize_torch(
     if means2d.requires_grad:
         means2d.retain_grad()
     bins = bin_gaussians(means2d, proj.radii, proj.depths, width, height, tile_size, proj.conics, opacities)
+    cells = _split_cells(bins, tile_size)
 
-    # one row per intersection: exponent coefficients, then features, depth and 1 (for alpha)
-    flat, gauss = bins.flat_ids, bins.flat_ids % n
-    in_image = bins.tile_ids % (bins.tiles_x * bins.tiles_y)
-    corner = torch.stack([in_image % bins.tiles_x, torch.div(in_image, bins.tiles_x, rounding_mode="floor")], -1)
-    centres = (corner * tile_size).to(means2d.dtype) + tile_size / 2.0
-    feats = features.reshape(-1, n_channels) if features.dim() == 3 else features
-    coeffs = exponent_coefficients(
-        means2d.reshape(-1, 2).index_select(0, flat),
-        proj.conics.reshape(-1, 3).index_select(0, flat),
-        torch.log(opacities.clamp(min=MIN_OPACITY)).index_select(0, gauss),
-        centres,
+    # tile centres of the intersections, in float32 (exact: tile ids < 2^24)
+    with torch.no_grad():
+        tile = bins.tile_ids.to(torch.float32)
+        n_tiles = bins.tiles_x * bins.tiles_y
+        if n_cams > 1:
+            tile = tile - torch.floor((tile + 0.5) / n_tiles) * n_tiles
+        row = torch.floor((tile + 0.5) / bins.tiles_x)
+        centre_x = ((tile - row * bins.tiles_x) * tile_size + tile_size / 2.0).to(means2d.dtype)
+        centre_y = (row * tile_size + tile_size / 2.0).to(means2d.dtype)
+    opacity_of_isect = None
+    if bool((opacities.detach() > ALPHA_MAX).any()):
+        opacity_of_isect = torch.cat([opacities.detach().index_select(0, bins.flat_ids % n), opacities.new_zeros(1)])
+    basis = _cell_basis(tile_size, cells.size, means2d.dtype, means2d.device)
+    plan = _Plan(
+        bins.flat_ids, centre_x, centre_y, _plan_blocks(cells, opacity_of_isect),
+        n_cams * n_tiles * cells.per_side**2, basis,
     )
-    table = torch.cat(
-        [
-            coeffs,
-            feats.index_select(0, flat if features.dim() == 3 else gauss),
-            proj.depths.reshape(-1, 1).index_select(0, flat),
-            torch.ones_like(coeffs[:, :1]),
-        ],
-        dim=-1,
-    )
-    pad = table.new_zeros(1, table.shape[1])
-    pad[0, 0] = PAD_EXPONENT
-    table = torch.cat([table, pad], dim=0)
-
-    opacity_of_isect = torch.cat([opacities.detach().index_select(0, gauss), opacities.new_zeros(1)])
-    blocks = _plan_blocks(bins, tile_size, opacity_of_isect)
-    tiled = _Composite.apply(table, blocks, n_cams * bins.tiles_x * bins.tiles_y, tile_size)
-    image = _tiles_to_image(tiled, n_cams, bins, width, height, tile_size)
+    tiled = _Rasterize.apply(means2d, proj.conics, opacities, features, proj.depths, plan)
+    image = _cells_to_image(tiled, n_cams, bins, cells, width, height)
     colour, depth_sum, alpha = image[..., :n_channels], image[..., n_channels : n_channels + 1], image[..., -1:]
     if backgrounds is not None:
         colour = colour + (1.0 - alpha) * backgrounds[:, None, None, :]
