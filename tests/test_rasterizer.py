@@ -441,3 +441,42 @@ def test_reused_buffers_do_not_change_results() -> None:
     again = run(scene_a)
     for key, value in first.items():
         assert torch.equal(again[key], value), key
+
+
+def test_cell_culling_keeps_image_and_gradients(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Small, elongated, rotated Gaussians: dropping the tile quadrants their alpha >= 1/255
+    ellipse misses changes neither the image nor the gradients (float64)."""
+    g = torch.Generator().manual_seed(19)
+    n, width, height = 300, 64, 48
+    dt = torch.float64
+    scene = {
+        "means": torch.cat([(torch.rand(n, 2, generator=g, dtype=dt) - 0.5) * torch.tensor([2.6, 2.0], dtype=dt),
+                            torch.rand(n, 1, generator=g, dtype=dt) - 0.5], 1),
+        "quats": torch.randn(n, 4, generator=g, dtype=dt),
+        "scales": torch.rand(n, 3, generator=g, dtype=dt) * torch.tensor([0.12, 0.02, 0.02], dtype=dt) + 0.004,
+        "opacities": 0.05 + 0.9 * torch.rand(n, generator=g, dtype=dt),
+        "features": torch.rand(n, 3, generator=g, dtype=dt),
+        "viewmats": look_at_viewmat(torch.tensor([0.0, 0.0, -3.0], dtype=dt), torch.zeros(3, dtype=dt))[None],
+        "Ks": torch.tensor([[[60.0, 0.0, width / 2], [0.0, 60.0, height / 2], [0.0, 0.0, 1.0]]], dtype=dt),
+    }
+    weights = loss_weights((1, height, width, 3), 20)
+
+    def run() -> Dict[str, Tensor]:
+        leaves = leafs(scene, dt)
+        out = rasterize_torch(
+            leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["features"],
+            leaves["viewmats"], leaves["Ks"], width, height,
+        )
+        ((out.render * weights).sum() + out.alpha.sum()).backward()
+        return {"render": out.render.detach(), **{k: leaves[k].grad for k in PARAM_NAMES}}
+
+    culled = run()
+    proj = project_gaussians(scene["means"], scene["quats"], scene["scales"], scene["viewmats"], scene["Ks"], width, height)
+    bins = bin_gaussians(proj.means2d, proj.radii, proj.depths, width, height, TILE_SIZE, proj.conics, scene["opacities"])
+    full_bins = bin_gaussians(proj.means2d, proj.radii, proj.depths, width, height)
+    reached = torch.stack([(bins.quadrants >> q) & 1 for q in range(4)]).sum()
+    assert reached < 0.8 * 4 * len(full_bins.flat_ids), "the scene must exercise the quadrant cut"
+    monkeypatch.setattr(torch_backend, "bin_gaussians", lambda *args: bin_gaussians(*args[:6]))
+    full = run()
+    for key, value in full.items():
+        torch.testing.assert_close(culled[key], value, rtol=1e-9, atol=1e-12, msg=key)
