@@ -190,8 +190,8 @@ def _projection_terms(
 
     # A = J R_view (2 x 3), entries [C, N]
     view = [[rot_view[:, i, j, None] for j in range(3)] for i in range(3)]  # [C, 1] each
-    a0 = [j00 * view[0][j] + j02 * view[2][j] for j in range(3)]
-    a1 = [j11 * view[1][j] + j12 * view[2][j] for j in range(3)]
+    a0 = [torch.addcmul(j00 * view[0][j], j02, view[2][j]) for j in range(3)]
+    a1 = [torch.addcmul(j11 * view[1][j], j12, view[2][j]) for j in range(3)]
     # world square root of the covariance M = R_gauss diag(s) (entries [N]); cov2d = (A M)(A M)^T
     q = quats.t().contiguous()
     inv_norm = torch.rsqrt((q * q).sum(0))
@@ -199,11 +199,11 @@ def _projection_terms(
     rot = _rotation_entries(*quat)
     scale = list(scales.t().contiguous().unbind(0))
     m_world = [[rot[j][k] * scale[k] for k in range(3)] for j in range(3)]
-    row0 = [a0[0] * m_world[0][k] + a0[1] * m_world[1][k] + a0[2] * m_world[2][k] for k in range(3)]
-    row1 = [a1[0] * m_world[0][k] + a1[1] * m_world[1][k] + a1[2] * m_world[2][k] for k in range(3)]
-    cov_a = row0[0] * row0[0] + row0[1] * row0[1] + row0[2] * row0[2] + eps2d
-    cov_b = row0[0] * row1[0] + row0[1] * row1[1] + row0[2] * row1[2]
-    cov_c = row1[0] * row1[0] + row1[1] * row1[1] + row1[2] * row1[2] + eps2d
+    row0 = [_dot3(a0, [m_world[j][k] for j in range(3)]) for k in range(3)]
+    row1 = [_dot3(a1, [m_world[j][k] for j in range(3)]) for k in range(3)]
+    cov_a = _dot3(row0, row0) + eps2d
+    cov_b = _dot3(row0, row1)
+    cov_c = _dot3(row1, row1) + eps2d
     det = cov_a * cov_c - cov_b * cov_b
     valid = in_range & (det > 0)
     inv_det = 1.0 / torch.where(valid, det, torch.ones_like(det))
@@ -259,19 +259,18 @@ class _ProjectGaussians(torch.autograd.Function):
         g_c = gc0 * inv_det - s * t.cov_a
         g_b = 2.0 * s * t.cov_b - gc1 * inv_det
         # cov = (A M)(A M)^T: rows of A M
-        g_row0 = [2.0 * g_a * t.row0[k] + g_b * t.row1[k] for k in range(3)]
-        g_row1 = [2.0 * g_c * t.row1[k] + g_b * t.row0[k] for k in range(3)]
+        g_a2, g_c2 = 2.0 * g_a, 2.0 * g_c
+        g_row0 = [torch.addcmul(g_a2 * t.row0[k], g_b, t.row1[k]) for k in range(3)]
+        g_row1 = [torch.addcmul(g_c2 * t.row1[k], g_b, t.row0[k]) for k in range(3)]
         # A M -> A, M
         m = t.m_world
-        g_a0 = [g_row0[0] * m[j][0] + g_row0[1] * m[j][1] + g_row0[2] * m[j][2] for j in range(3)]
-        g_a1 = [g_row1[0] * m[j][0] + g_row1[1] * m[j][1] + g_row1[2] * m[j][2] for j in range(3)]
-        g_m = [[total(t.a0[j] * g_row0[k] + t.a1[j] * g_row1[k]) for k in range(3)] for j in range(3)]
+        g_a0 = [_dot3(g_row0, m[j]) for j in range(3)]
+        g_a1 = [_dot3(g_row1, m[j]) for j in range(3)]
+        g_m = [[total(torch.addcmul(t.a0[j] * g_row0[k], t.a1[j], g_row1[k])) for k in range(3)] for j in range(3)]
         # A = J R_view -> J, R_view
         view = t.view
-        g_j00 = g_a0[0] * view[0][0] + g_a0[1] * view[0][1] + g_a0[2] * view[0][2]
-        g_j02 = g_a0[0] * view[2][0] + g_a0[1] * view[2][1] + g_a0[2] * view[2][2]
-        g_j11 = g_a1[0] * view[1][0] + g_a1[1] * view[1][1] + g_a1[2] * view[1][2]
-        g_j12 = g_a1[0] * view[2][0] + g_a1[1] * view[2][1] + g_a1[2] * view[2][2]
+        g_j00, g_j02 = _dot3(g_a0, view[0]), _dot3(g_a0, view[2])
+        g_j11, g_j12 = _dot3(g_a1, view[1]), _dot3(g_a1, view[2])
         g_view = [
             [(g_a0[j] * t.j00).sum(1) for j in range(3)],
             [(g_a1[j] * t.j11).sum(1) for j in range(3)],
@@ -289,7 +288,7 @@ class _ProjectGaussians(torch.autograd.Function):
         # camera position p = R_view m + t
         g_p = (g_x, g_y, g_z)
         g_means = torch.stack(
-            [total(g_p[0] * view[0][j] + g_p[1] * view[1][j] + g_p[2] * view[2][j]) for j in range(3)], 1
+            [total(_dot3(g_p, [view[0][j], view[1][j], view[2][j]])) for j in range(3)], 1
         )
         means_rows = means.t()
         g_viewmats = torch.zeros(n_cams, 4, 4, dtype=g_depths.dtype, device=g_depths.device)
@@ -299,7 +298,7 @@ class _ProjectGaussians(torch.autograd.Function):
                 g_viewmats[:, i, j] = g_view[i][j] + (g_p[i] * means_rows[j]).sum(1)
         # M = R_gauss diag(s)
         rot, scale = t.rot, t.scale
-        g_scales = torch.stack([g_m[0][k] * rot[0][k] + g_m[1][k] * rot[1][k] + g_m[2][k] * rot[2][k] for k in range(3)], 1)
+        g_scales = torch.stack([_dot3([g_m[j][k] for j in range(3)], [rot[j][k] for j in range(3)]) for k in range(3)], 1)
         g_r = [[g_m[j][k] * scale[k] for k in range(3)] for j in range(3)]
         w, x, y, z = t.quat
         g_w = 2.0 * (z * (g_r[1][0] - g_r[0][1]) + y * (g_r[0][2] - g_r[2][0]) + x * (g_r[2][1] - g_r[1][2]))
@@ -312,6 +311,11 @@ class _ProjectGaussians(torch.autograd.Function):
             [(g - q * radial) * t.inv_norm for g, q in ((g_w, w), (g_x, x), (g_y, y), (g_zq, z))], 1
         )
         return g_means, g_quats, g_scales, g_viewmats, None, None
+
+
+def _dot3(a: List[Tensor], b: List[Tensor]) -> Tensor:
+    """a0 b0 + a1 b1 + a2 b2 of rows (broadcasting), in three ops."""
+    return torch.addcmul(torch.addcmul(a[0] * b[0], a[1], b[1]), a[2], b[2])
 
 
 def _rotation_entries(w: Tensor, x: Tensor, y: Tensor, z: Tensor) -> List[List[Tensor]]:
