@@ -1,9 +1,11 @@
 """EWA projection of 3D Gaussians to screen space, in pure PyTorch (any device, any float dtype).
 
 This is the projection step of gsplat 1.4.0's ``fully_fused_projection`` (pinhole camera,
-"classic" rasterize mode) written with differentiable torch operations, so gradients reach
-means, quaternions, scales *and* the world-to-camera matrices. Shapes: N Gaussians, C cameras.
-Cameras use the OpenCV convention (x right, y down, z forward).
+"classic" rasterize mode) in torch operations on one [C, N] row per matrix entry, with a
+hand-written backward, so gradients reach means, quaternions, scales *and* the world-to-camera
+matrices (``project_gaussians_autograd`` runs the same equations under autograd, and also
+differentiates the intrinsics). Shapes: N Gaussians, C cameras. Cameras use the OpenCV
+convention (x right, y down, z forward).
 """
 
 from __future__ import annotations
