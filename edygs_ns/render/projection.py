@@ -100,7 +100,9 @@ def project_gaussians(
         The screen-space Gaussians; culled entries have finite (meaningless) values.
     """
     if Ks.requires_grad and torch.is_grad_enabled():
-        return project_gaussians_autograd(means, quats, scales, viewmats, Ks, width, height, near_plane, far_plane, eps2d)
+        return project_gaussians_autograd(
+            means, quats, scales, viewmats, Ks, width, height, near_plane, far_plane, eps2d
+        )
     means2d, conics, depths, radii = _ProjectGaussians.apply(
         means, quats, scales, viewmats, Ks.detach(), (width, height, near_plane, far_plane, eps2d)
     )
@@ -220,7 +222,8 @@ def _projection_terms(
         keep = valid & on_screen & (radius > 0)
         radii = torch.where(keep, radius, torch.zeros_like(radius)).to(torch.int32)
     return _Terms(
-        x, y, z, in_range, inv_z, u, v, u_free, v_free, u_clamped, v_clamped, fx, fy, j00, j02, j11, j12, view, a0, a1, rot, quat,
+        x, y, z, in_range, inv_z, u, v, u_free, v_free, u_clamped, v_clamped, fx, fy, j00, j02, j11, j12, view,
+        a0, a1, rot, quat,
         inv_norm, scale, m_world, row0, row1, cov_a, cov_b, cov_c, valid, inv_det, means2d, conics, radii,
     )
 
@@ -230,7 +233,9 @@ class _ProjectGaussians(torch.autograd.Function):
     out on the same [C, N] rows, in reverse order)."""
 
     @staticmethod
-    def forward(ctx, means: Tensor, quats: Tensor, scales: Tensor, viewmats: Tensor, Ks: Tensor, settings):  # type: ignore[override]
+    def forward(  # type: ignore[override]
+        ctx, means: Tensor, quats: Tensor, scales: Tensor, viewmats: Tensor, Ks: Tensor, settings
+    ):
         with torch.no_grad():
             terms = _projection_terms(means, quats, scales, viewmats, Ks, *settings)
         outputs = terms.means2d, terms.conics, terms.z, terms.radii
@@ -243,7 +248,9 @@ class _ProjectGaussians(torch.autograd.Function):
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, g_means2d: Tensor, g_conics: Tensor, g_depths: Tensor, _g_radii: Optional[Tensor]):  # type: ignore[override]
+    def backward(  # type: ignore[override]
+        ctx, g_means2d: Tensor, g_conics: Tensor, g_depths: Tensor, _g_radii: Optional[Tensor]
+    ):
         (means,) = ctx.saved_tensors
         t = ctx.terms
         n_cams = g_depths.shape[0]
@@ -300,13 +307,18 @@ class _ProjectGaussians(torch.autograd.Function):
                 g_viewmats[:, i, j] = g_view[i][j] + (g_p[i] * means_rows[j]).sum(1)
         # M = R_gauss diag(s)
         rot, scale = t.rot, t.scale
-        g_scales = torch.stack([_dot3([g_m[j][k] for j in range(3)], [rot[j][k] for j in range(3)]) for k in range(3)], 1)
+        g_scales = torch.stack(
+            [_dot3([g_m[j][k] for j in range(3)], [rot[j][k] for j in range(3)]) for k in range(3)], 1
+        )
         g_r = [[g_m[j][k] * scale[k] for k in range(3)] for j in range(3)]
         w, x, y, z = t.quat
-        g_w = 2.0 * (z * (g_r[1][0] - g_r[0][1]) + y * (g_r[0][2] - g_r[2][0]) + x * (g_r[2][1] - g_r[1][2]))
-        g_x = 2.0 * (y * (g_r[0][1] + g_r[1][0]) + z * (g_r[0][2] + g_r[2][0]) + w * (g_r[2][1] - g_r[1][2])) - 4.0 * x * (g_r[1][1] + g_r[2][2])
-        g_y = 2.0 * (x * (g_r[0][1] + g_r[1][0]) + w * (g_r[0][2] - g_r[2][0]) + z * (g_r[1][2] + g_r[2][1])) - 4.0 * y * (g_r[0][0] + g_r[2][2])
-        g_zq = 2.0 * (w * (g_r[1][0] - g_r[0][1]) + x * (g_r[0][2] + g_r[2][0]) + y * (g_r[1][2] + g_r[2][1])) - 4.0 * z * (g_r[0][0] + g_r[1][1])
+        # symmetric / antisymmetric parts of dL/dR
+        s01, s02, s12 = g_r[0][1] + g_r[1][0], g_r[0][2] + g_r[2][0], g_r[1][2] + g_r[2][1]
+        a10, a02, a21 = g_r[1][0] - g_r[0][1], g_r[0][2] - g_r[2][0], g_r[2][1] - g_r[1][2]
+        g_w = 2.0 * (z * a10 + y * a02 + x * a21)
+        g_x = 2.0 * (y * s01 + z * s02 + w * a21) - 4.0 * x * (g_r[1][1] + g_r[2][2])
+        g_y = 2.0 * (x * s01 + w * a02 + z * s12) - 4.0 * y * (g_r[0][0] + g_r[2][2])
+        g_zq = 2.0 * (w * a10 + x * s02 + y * s12) - 4.0 * z * (g_r[0][0] + g_r[1][1])
         # q_hat = q / |q|: the gradient loses its radial part
         radial = w * g_w + x * g_x + y * g_y + z * g_zq
         g_quats = torch.stack(

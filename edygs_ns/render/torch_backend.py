@@ -181,8 +181,9 @@ def _band_columns(
         width = torch.addcmul(a_r2, det, dy * dy, value=-1.0).clamp_(min=0.0).sqrt_()
         ends.append(width.mul_(sign).addcmul_(cb, dy, value=-1.0).div_(ca).add_(cx))
     missed = (lo > hi).to(f32).mul_(4.0 * 2**20)
-    first = torch.cat([torch.maximum(ends[0].sub_(PIXEL_CENTRE + _BAND_SLACK).ceil_().to(f32), fx).add_(missed).view(-1), fx])
-    last = torch.cat([torch.minimum(ends[1].sub_(PIXEL_CENTRE - _BAND_SLACK).floor_().to(f32), lx).sub_(missed).view(-1), lx])
+    first = torch.maximum(ends[0].sub_(PIXEL_CENTRE + _BAND_SLACK).ceil_().to(f32), fx).add_(missed)
+    last = torch.minimum(ends[1].sub_(PIXEL_CENTRE - _BAND_SLACK).floor_().to(f32), lx).sub_(missed)
+    first, last = torch.cat([first.view(-1), fx]), torch.cat([last.view(-1), lx])
     return first, last, first_band
 
 
@@ -254,7 +255,9 @@ def bin_gaussians(
             y1 = torch.maximum(torch.minimum(y1, torch.floor(ly / tile_size) + 1), y0)
             box = [fx, fy, lx, ly]
             if half_tile:
-                band_lo, band_hi, first_band = _band_columns(cx, cy, ca, cb, cc, r2, half_x, half_y, fx, fy, lx, half_tile)
+                band_lo, band_hi, first_band = _band_columns(
+                    cx, cy, ca, cb, cc, r2, half_x, half_y, fx, fy, lx, half_tile
+                )
         nx, ny = x1 - x0, y1 - y0
         counts = (nx * ny).long()
         quadrant_cut = box is not None and half_tile > 0
@@ -271,7 +274,8 @@ def bin_gaussians(
             )
         # the sort key of each visible Gaussian without its tile: camera's first tile, depth
         cam_tile = torch.div(flat, n, rounding_mode="floor") * n_tiles if n_cams > 1 else torch.zeros_like(flat)
-        vkey = (cam_tile << _TILE_SHIFT) | (_depth_keys(depths.detach().reshape(-1).index_select(0, flat)) << _DEPTH_SHIFT)
+        depth_key = _depth_keys(depths.detach().reshape(-1).index_select(0, flat))
+        vkey = (cam_tile << _TILE_SHIFT) | (depth_key << _DEPTH_SHIFT)
         # per intersection: one 1-D gather per quantity (fastest on CPU), index math in float32
         owner = torch.repeat_interleave(torch.arange(len(flat), device=device), counts)  # [M]
         first = torch.cumsum(counts, 0) - counts
@@ -316,9 +320,8 @@ def bin_gaussians(
         if quadrant_cut:  # the key's low 4 bits
             low_byte = keys.view(torch.uint8)[:: 8] if sys.byteorder == "little" else keys.to(torch.uint8)
             quadrants = low_byte & ((1 << _DEPTH_SHIFT) - 1)
-    return TileBins(
-        flat.index_select(0, owner.index_select(0, order)), tile_ids, tile_starts, tile_counts, tiles_x, tiles_y, quadrants
-    )
+    flat_ids = flat.index_select(0, owner.index_select(0, order))
+    return TileBins(flat_ids, tile_ids, tile_starts, tile_counts, tiles_x, tiles_y, quadrants)
 
 
 def _split_cells(bins: TileBins, tile_size: int) -> _Cells:
@@ -375,9 +378,12 @@ def _plan_blocks(cells: _Cells, opacity_of_isect: Optional[Tensor]) -> List[_Blo
         ids = ids.index_select(0, torch.argsort(quadrant * len(counts) + ids))
         per_quadrant = torch.bincount(quadrant, minlength=n_sub).tolist()
         slot = torch.arange(k, device=counts.device)
-        pos = torch.where(slot < counts.index_select(0, ids)[:, None], cells.starts.index_select(0, ids)[:, None] + slot, pad_slot)
+        filled = slot < counts.index_select(0, ids)[:, None]
+        pos = torch.where(filled, cells.starts.index_select(0, ids)[:, None] + slot, pad_slot)
         slots = cells.rows.index_select(0, pos.view(-1)).view(pos.shape)
-        can_clamp = opacity_of_isect is not None and bool(opacity_of_isect.index_select(0, slots.view(-1)).max() > ALPHA_MAX)
+        can_clamp = opacity_of_isect is not None and bool(
+            opacity_of_isect.index_select(0, slots.view(-1)).max() > ALPHA_MAX
+        )
         bounds, first = [], 0
         for q, count in enumerate(per_quadrant):
             if count:
@@ -551,8 +557,9 @@ class _Rasterize(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, depths: Tensor,  # type: ignore[override]
-                plan: _Plan) -> Tensor:
+    def forward(  # type: ignore[override]
+        ctx, means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, depths: Tensor, plan: _Plan
+    ) -> Tensor:
         n_cams, n = means2d.shape[0], opacities.shape[0]
         flat = plan.flat_ids
         n_isect, n_feat = len(flat), features.shape[-1]
@@ -580,7 +587,8 @@ class _Rasterize(torch.autograd.Function):
             t, k = block.slots.shape
             carve = _Carver(workspace)
             rows = torch.index_select(table, 0, block.slots.view(-1), out=carve(t * k, n_cols))
-            alpha, weights = (carve_kept if save else carve)(n_pix, t, k), (carve_kept if save else carve)(n_pix, t, k)
+            carve_out = carve_kept if save else carve
+            alpha, weights = carve_out(n_pix, t, k), carve_out(n_pix, t, k)
             unclamped = _block_forward(basis2, rows, block, need_grad, alpha, weights, carve)
             feats_t = rows.view(t, k, n_cols)[..., N_COEFFS:].transpose(1, 2)  # [t, F, K]
             out.index_copy_(0, block.cells, torch.bmm(feats_t, weights.permute(1, 2, 0)))
@@ -625,7 +633,8 @@ class _Rasterize(torch.autograd.Function):
         )
         work = max(work, (7 + n_feat) * n_isect)
         workspace = _take(work + n_cols * (n_isect + 1), table)
-        grad_table = workspace[work : work + n_cols * (n_isect + 1)].view(n_cols, n_isect + 1).zero_()  # [columns, rows]
+        # [columns, rows]
+        grad_table = workspace[work : work + n_cols * (n_isect + 1)].view(n_cols, n_isect + 1).zero_()
         for i, block in enumerate(plan.blocks):
             t, k = block.slots.shape
             carve = _Carver(workspace)
@@ -649,7 +658,10 @@ class _Rasterize(torch.autograd.Function):
                 g.mul_(unclamped)
             per_slot = later.view(-1)[: n_cols * t * k].view(n_cols, t * k)  # later is free again
             for quadrant, first, stop in block.quadrants:
-                torch.mm(plan.basis[quadrant].t(), g[:, first:stop].view(n_pix, -1), out=per_slot[:N_COEFFS, first * k : stop * k])
+                torch.mm(
+                    plan.basis[quadrant].t(), g[:, first:stop].view(n_pix, -1),
+                    out=per_slot[:N_COEFFS, first * k : stop * k],
+                )
             torch.bmm(g_pix.transpose(1, 2), weights.permute(1, 0, 2), out=g_feat)
             per_slot[N_COEFFS:].view(n_feat + 2, t, k).copy_(g_feat.transpose(0, 1))
             grad_table.index_add_(1, block.slots.view(-1), per_slot)
