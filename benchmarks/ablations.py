@@ -11,6 +11,10 @@ command, machine and date that produced them.
 Usage::
 
     python benchmarks/ablations.py --out benchmarks/results/cpu --seeds 0 1 2 --iters 1500
+
+Scenes, runs and evaluations already in ``--out`` are reused, so seeds can train as separate
+processes (one per core) into the same folder and a last call over all seeds writes the combined
+table without training or evaluating again.
 """
 
 from __future__ import annotations
@@ -128,6 +132,18 @@ def train(cfg: AblationBenchConfig, scene: Path, label: str, method: str, ablati
     return config_path, seconds
 
 
+def evaluate_cached(config_path: Path, label: str) -> Dict[str, Any]:
+    """edygs-eval's metrics of a run: read back when its eval/metrics.json is newer than every
+    checkpoint (a re-run of the benchmark, or seeds run as separate processes, then merged)."""
+    metrics_file = config_path.parent / "eval" / "metrics.json"
+    checkpoints = list((config_path.parent / "nerfstudio_models").glob("*.ckpt"))
+    if metrics_file.is_file() and checkpoints and metrics_file.stat().st_mtime > max(c.stat().st_mtime for c in checkpoints):
+        metrics = json.loads(metrics_file.read_text())
+        if label in metrics:
+            return metrics
+    return evaluate_run(config_path, config_path.parent / "eval", max_grids=2, method=label)
+
+
 def _mean(entry: Any) -> Any:
     return entry.get("mean") if isinstance(entry, dict) else entry
 
@@ -190,7 +206,7 @@ def main(cfg: AblationBenchConfig) -> Dict[str, Any]:
         scene = make_scene(cfg, seed)
         for label, method, ablation in chosen:
             config_path, seconds = train(cfg, scene, label, method, ablation, runs)
-            metrics = evaluate_run(config_path, config_path.parent / "eval", max_grids=2, method=label)
+            metrics = evaluate_cached(config_path, label)
             row = row_of(metrics, label, seconds)
             row["seed"] = seed
             results["rows"][label].append(row)
