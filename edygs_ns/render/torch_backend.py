@@ -145,30 +145,34 @@ def _depth_keys(depths: Tensor) -> Tensor:
     return rank
 
 
-#: bands of cells (half-tile rows) per Gaussian whose pixel columns are cut to the ellipse
-_BANDS = 4
+#: bands of cells (half-tile rows) per Gaussian whose pixel columns are cut to the ellipse: as
+#: many as the tallest Gaussian needs, within BAND_ELEMENTS [bands, V] elements (at least 4)
+BAND_ELEMENTS = 1 << 19
+_MIN_BANDS = 4
 #: slack in pixels on the ellipse's band extents (covers float rounding; only adds work)
 _BAND_SLACK = 0.01
 
 
 def _band_columns(
     cx: Tensor, cy: Tensor, ca: Tensor, cb: Tensor, cc: Tensor, r2: Tensor, half_x: Tensor, half_y: Tensor,
-    fx: Tensor, fy: Tensor, lx: Tensor, band: int,
-) -> Tuple[Tensor, Tensor, Tensor]:
-    """First / last pixel column the ellipse (d^T Q d <= r2) reaches in each of its first _BANDS
+    fx: Tensor, fy: Tensor, lx: Tensor, ly: Tensor, band: int,
+) -> Tuple[Tensor, Tensor, Tensor, int]:
+    """First / last pixel column the ellipse (d^T Q d <= r2) reaches in each of its first B
     bands of ``band`` pixel rows, starting at the band of its first pixel row.
 
     In a band [y0, y1] the ellipse's x extent is [x_left(clamp(y_L)), x_right(clamp(y_R))]:
     x_left is convex in y with its minimum at the leftmost point y_L, x_right concave. A band it
-    misses gets an empty range. Entry _BANDS is the whole box (for taller Gaussians).
+    misses gets an empty range. Entry B is the whole box (for taller Gaussians).
 
     Returns:
-        [(_BANDS + 1) * V] float32 first and last columns (band-major), and [V] the first band.
+        [(B + 1) * V] float32 first and last columns (band-major), [V] the first band, and B.
     """
     f32 = torch.float32
     first_band = torch.floor(fy / band)
-    # [_BANDS, V] rows: bands lead, Gaussians contiguous (broadcasts along V stay fast)
-    offsets = torch.arange(_BANDS, dtype=cy.dtype, device=cy.device)[:, None] * band
+    n_bands = int((torch.floor(ly / band) - first_band).max()) + 1 if len(fy) else 1
+    n_bands = max(1, min(n_bands, max(_MIN_BANDS, BAND_ELEMENTS // max(len(fy), 1))))
+    # [B, V] rows: bands lead, Gaussians contiguous (broadcasts along V stay fast)
+    offsets = torch.arange(n_bands, dtype=cy.dtype, device=cy.device)[:, None] * band
     top = (first_band.to(cy.dtype) * band - cy + (PIXEL_CENTRE - _BAND_SLACK)) + offsets
     lo = torch.maximum(top, -half_y)
     hi = torch.minimum(top + (band - 1 + 2 * _BAND_SLACK), half_y)
@@ -184,7 +188,7 @@ def _band_columns(
     first = torch.maximum(ends[0].sub_(PIXEL_CENTRE + _BAND_SLACK).ceil_().to(f32), fx).add_(missed)
     last = torch.minimum(ends[1].sub_(PIXEL_CENTRE - _BAND_SLACK).floor_().to(f32), lx).sub_(missed)
     first, last = torch.cat([first.view(-1), fx]), torch.cat([last.view(-1), lx])
-    return first, last, first_band
+    return first, last, first_band, n_bands
 
 
 def bin_gaussians(
@@ -255,8 +259,8 @@ def bin_gaussians(
             y1 = torch.maximum(torch.minimum(y1, torch.floor(ly / tile_size) + 1), y0)
             box = [fx, fy, lx, ly]
             if half_tile:
-                band_lo, band_hi, first_band = _band_columns(
-                    cx, cy, ca, cb, cc, r2, half_x, half_y, fx, fy, lx, half_tile
+                band_lo, band_hi, first_band, n_bands = _band_columns(
+                    cx, cy, ca, cb, cc, r2, half_x, half_y, fx, fy, lx, ly, half_tile
                 )
         nx, ny = x1 - x0, y1 - y0
         counts = (nx * ny).long()
@@ -301,7 +305,7 @@ def bin_gaussians(
             small = len(band_lo) < 1 << 24  # float32 index math is exact (and ~10x faster than int64)
             owner_f = owner.to(f32) if small else owner
             for half in (0, 1):
-                band_of = (rel + half).clamp_(0, _BANDS)
+                band_of = (rel + half).clamp_(0, n_bands)
                 at = (band_of * len(flat) + owner_f).to(torch.int32) if small else band_of.long() * len(flat) + owner
                 lo, hi = band_lo.index_select(0, at), band_hi.index_select(0, at)
                 reach_l = (lo <= col_first + (half_tile - 1)) & (hi >= col_first)
