@@ -480,3 +480,28 @@ def test_cell_culling_keeps_image_and_gradients(monkeypatch: pytest.MonkeyPatch)
     full = run()
     for key, value in full.items():
         torch.testing.assert_close(culled[key], value, rtol=1e-9, atol=1e-12, msg=key)
+
+
+@pytest.mark.parametrize("slot_pixels", [0, 10**6])
+def test_whole_tiles_and_quadrant_cells_agree(monkeypatch: pytest.MonkeyPatch, slot_pixels: int) -> None:
+    """Compositing a tile whole or per quadrant is the same computation (float64)."""
+    scene = make_scene(40, n_cams=2, seed=21)
+    weights = loss_weights((2, HEIGHT, WIDTH, 4), 22)
+
+    def run() -> Dict[str, Tensor]:
+        leaves = leafs(scene, torch.float64)
+        out = run_torch(leaves)
+        ((out.render * weights).sum() + out.depth.sum() + out.alpha.sum()).backward()
+        return {"render": out.render.detach(), **{k: leaves[k].grad for k in PARAM_NAMES}}
+
+    calls = []
+    split = torch_backend._split_cells
+    monkeypatch.setattr(torch_backend, "_split_cells", lambda *a: calls.append(split(*a)) or calls[-1])
+    reference = run()
+    assert (calls[0].tile_counts > 0).any() and (calls[0].counts > 0).any(), "the default must mix both"
+    monkeypatch.setattr(torch_backend, "SLOT_PIXELS", slot_pixels)
+    other = run()
+    whole, split_cells = (calls[1].tile_counts > 0).any(), (calls[1].counts > 0).any()
+    assert (split_cells and not whole) if slot_pixels == 0 else (whole and not split_cells)
+    for key, value in reference.items():
+        torch.testing.assert_close(other[key], value, rtol=1e-10, atol=1e-12, msg=key)

@@ -10,7 +10,8 @@ change); the work is done on 4x4-pixel cells, the tile quadrants: a (Gaussian, t
 composited only in the quadrants that hold a pixel centre inside its alpha >= 1/255 ellipse
 (its box, then the ellipse's exact extent per row of cells). For the ~1 pixel Gaussians of a
 dense scene this leaves about half the elements of whole 8x8 tiles (47% for 20k Gaussians on
-128x128, 51% for 100k on 400x400), and about half of those have alpha >= 1/255.
+128x128, 51% for 100k on 400x400), and about half of those have alpha >= 1/255. A tile whose
+intersections mostly reach all four quadrants (large Gaussians) is composited whole instead.
 
 Inside a tile a Gaussian's exponent -sigma + log(o) is a quadratic polynomial of the pixel
 position relative to the tile centre. ``_Rasterize`` (one autograd Function) writes its 6
@@ -58,6 +59,9 @@ from edygs_ns.render.projection import project_gaussians
 TILE_SIZE = 8
 #: target number of [cell, pixel, Gaussian] elements per compositing block (2 MiB in float32).
 BLOCK_ELEMENTS = 1 << 19
+#: a slot (a table row gathered in forward and backward, scattered in backward) costs about as
+#: much as this many [pixel, intersection] elements; decides whole tiles versus quadrant cells.
+SLOT_PIXELS = 8
 #: forward keeps the weights for backward while they fit in this many bytes; above it the
 #: backward recomputes them block by block.
 SAVE_BUDGET_BYTES = 256 << 20
@@ -106,16 +110,21 @@ class TileBins:
 
 @dataclass
 class _Cells:
-    """The intersections each compositing cell (tile quadrant) sees, depth-sorted inside a cell.
+    """What each compositing unit sees, depth-sorted: whole tiles, or the cells (quadrants) of a tile.
 
-    Cell (c * T + tile) * s^2 + row * s + column (s = cells per tile edge, 1 or 2); the S slots of a
-    cell are contiguous from ``starts``; ``rows`` [S + 1] are intersection (table row) indices, the
-    last one M, the pad row of the table.
+    A tile is composited whole when most of its intersections reach all its quadrants (splitting
+    would add gathered rows without dropping pixels), else per quadrant. Cell
+    (c * T + tile) * s^2 + row * s + column (s = cells per tile edge, 1 or 2); the slots of a cell
+    are contiguous from ``starts``; ``rows`` [S + 1] are intersection (table row) indices, the last
+    one M, the pad row of the table. A whole tile's intersections are its table rows
+    ``tile_starts[tile] + k`` (the table is sorted by tile).
     """
 
     rows: Tensor
     starts: Tensor
-    counts: Tensor
+    counts: Tensor  # [C * T * s^2], 0 for the cells of whole tiles
+    tile_starts: Tensor
+    tile_counts: Tensor  # [C * T], 0 for split tiles
     per_side: int
     size: int
 
@@ -124,10 +133,12 @@ class _Cells:
 class _Block:
     """Cells composited together; ``slots`` [t, K] index the intersection table (pad = last row)."""
 
-    cells: Tensor
+    cells: Tensor  # cell ids, or tile ids for a block of whole tiles
     slots: Tensor
     can_clamp: bool  # some Gaussian of the block has opacity above ALPHA_MAX
-    quadrants: List[Tuple[int, int, int]]  # (quadrant, first, stop): cells [first, stop) are that cell of their tile
+    # (quadrant, first, stop): cells [first, stop) are that cell of their tile; quadrant -1: whole tiles
+    quadrants: List[Tuple[int, int, int]]
+    pixels: int
 
 
 #: bits of the sort key below the tile id: 31 for the depth (or its rank), 4 for the quadrant mask.
@@ -329,72 +340,86 @@ def bin_gaussians(
 
 
 def _split_cells(bins: TileBins, tile_size: int) -> _Cells:
-    """The slots of every cell (tile quadrant): the intersections of its tile that reach the quadrant."""
+    """Choose whole tiles or quadrant cells per tile; list the intersections of every quadrant cell."""
     device = bins.flat_ids.device
-    n_isect = len(bins.flat_ids)
-    if tile_size % 2 != 0:
-        return _Cells(torch.arange(n_isect + 1, device=device), bins.tile_starts, bins.tile_counts, 1, tile_size)
-    n_tiles = len(bins.tile_counts)
+    n_isect, n_tiles = len(bins.flat_ids), len(bins.tile_counts)
+    pad = torch.full((1,), n_isect, dtype=torch.long, device=device)
+    if tile_size % 2 != 0 or bins.quadrants is None:  # every tile whole
+        side = 2 if tile_size % 2 == 0 else 1
+        empty = bins.tile_counts.new_zeros(n_tiles * side * side)
+        return _Cells(pad, empty, empty, bins.tile_starts, bins.tile_counts, side, tile_size // side)
     with torch.no_grad():
         rows, counts = [], []
         for quadrant in range(4):  # [M] uint8 bit tests: 8x cheaper than int64
-            if bins.quadrants is None:
-                rows.append(torch.arange(n_isect, device=device))
-                counts.append(bins.tile_counts)
-                continue
             # depth order inside a tile is kept: nonzero lists the intersections in sorted order
             hit = torch.nonzero(((bins.quadrants >> quadrant) & 1).view(torch.bool)).squeeze(1)
             rows.append(hit)
             counts.append(torch.bincount(bins.tile_ids.index_select(0, hit), minlength=n_tiles))
-        # slots are ordered (quadrant, tile): exclusive cumsum in that order, then cell order
-        counts_qt = torch.cat(counts)
-        starts = (torch.cumsum(counts_qt, 0) - counts_qt).view(4, n_tiles).t().reshape(-1)
-        counts_cell = counts_qt.view(4, n_tiles).t().reshape(-1)
-        rows.append(torch.full((1,), n_isect, dtype=torch.long, device=device))  # the pad row
-    return _Cells(torch.cat(rows), starts, counts_cell, 2, tile_size // 2)
+        counts_qt = torch.stack(counts)  # [4, C * T]
+        # cost in pixel elements, a slot (a gathered and scattered table row) counted as SLOT_PIXELS
+        cell_pixels = (tile_size // 2) ** 2
+        split_cost = counts_qt.sum(0) * (cell_pixels + SLOT_PIXELS)
+        whole = split_cost > bins.tile_counts * (4 * cell_pixels + SLOT_PIXELS)
+        # slots are ordered (quadrant, tile): exclusive cumsum in that order, then cell order; the
+        # rows of whole tiles stay in ``rows`` unused (cheaper than compacting them out)
+        flat_counts = counts_qt.view(-1)
+        starts = (torch.cumsum(flat_counts, 0) - flat_counts).view(4, n_tiles).t().reshape(-1)
+        counts_cell = counts_qt.masked_fill_(whole, 0).t().reshape(-1)
+    return _Cells(
+        torch.cat(rows + [pad]), starts, counts_cell, bins.tile_starts, bins.tile_counts * whole, 2, tile_size // 2
+    )
 
 
 def _plan_blocks(cells: _Cells, opacity_of_isect: Optional[Tensor]) -> List[_Block]:
-    """Group non-empty cells (largest first) into blocks of about BLOCK_ELEMENTS elements.
+    """Group non-empty whole tiles and cells (largest first) into blocks of about BLOCK_ELEMENTS.
 
-    Inside a block the cells are ordered by quadrant, then id: the pixels of one quadrant share a
-    monomial basis (one matmul per quadrant), and the rows of a quadrant's cells ascend
+    Inside a block of cells they are ordered by quadrant, then id: the pixels of one quadrant
+    share a monomial basis (one matmul per quadrant), and the rows of a quadrant's cells ascend
     (cache-friendly gathers and scatters).
 
     Args:
         opacity_of_isect: [M + 1] opacity of each intersection's Gaussian (0 for the pad row), or
             None when no opacity exceeds ALPHA_MAX (no block can clamp).
     """
-    pixels = cells.size * cells.size
     n_sub = cells.per_side * cells.per_side
-    counts = cells.counts
-    pad_slot = len(cells.rows) - 1
-    order = torch.argsort(counts, descending=True)
-    sorted_counts = counts.index_select(0, order).tolist()
-    n_used = sorted_counts.index(0) if 0 in sorted_counts else len(sorted_counts)  # descending: zeros last
+    cell_pixels = cells.size * cells.size
+    pad_row = int(cells.rows[-1])
     blocks: List[_Block] = []
-    begin = 0
-    while begin < n_used:
-        k = sorted_counts[begin]
-        stop = min(n_used, begin + max(1, BLOCK_ELEMENTS // (pixels * k)))
-        ids = order[begin:stop]
-        quadrant = ids % n_sub
-        ids = ids.index_select(0, torch.argsort(quadrant * len(counts) + ids))
-        per_quadrant = torch.bincount(quadrant, minlength=n_sub).tolist()
-        slot = torch.arange(k, device=counts.device)
-        filled = slot < counts.index_select(0, ids)[:, None]
-        pos = torch.where(filled, cells.starts.index_select(0, ids)[:, None] + slot, pad_slot)
-        slots = cells.rows.index_select(0, pos.view(-1)).view(pos.shape)
-        can_clamp = opacity_of_isect is not None and bool(
-            opacity_of_isect.index_select(0, slots.view(-1)).max() > ALPHA_MAX
-        )
-        bounds, first = [], 0
-        for q, count in enumerate(per_quadrant):
-            if count:
-                bounds.append((q, first, first + count))
-            first += count
-        blocks.append(_Block(ids, slots, can_clamp, bounds))
-        begin = stop
+    for whole in (True, False):
+        counts = cells.tile_counts if whole else cells.counts
+        starts = cells.tile_starts if whole else cells.starts
+        pixels = cell_pixels * n_sub if whole else cell_pixels
+        order = torch.argsort(counts, descending=True)
+        sorted_counts = counts.index_select(0, order).tolist()
+        n_used = sorted_counts.index(0) if 0 in sorted_counts else len(sorted_counts)  # descending: zeros last
+        begin = 0
+        while begin < n_used:
+            k = sorted_counts[begin]
+            stop = min(n_used, begin + max(1, BLOCK_ELEMENTS // (pixels * k)))
+            ids = order[begin:stop]
+            if whole:
+                ids = ids.sort().values
+                bounds = [(-1, 0, len(ids))]
+            else:
+                quadrant = ids % n_sub
+                ids = ids.index_select(0, torch.argsort(quadrant * len(counts) + ids))
+                bounds, first = [], 0
+                for q, count in enumerate(torch.bincount(quadrant, minlength=n_sub).tolist()):
+                    if count:
+                        bounds.append((q, first, first + count))
+                    first += count
+            slot = torch.arange(k, device=counts.device)
+            filled = slot < counts.index_select(0, ids)[:, None]
+            if whole:
+                slots = torch.where(filled, starts.index_select(0, ids)[:, None] + slot, pad_row)
+            else:
+                pos = torch.where(filled, starts.index_select(0, ids)[:, None] + slot, len(cells.rows) - 1)
+                slots = cells.rows.index_select(0, pos.view(-1)).view(pos.shape)
+            can_clamp = opacity_of_isect is not None and bool(
+                opacity_of_isect.index_select(0, slots.view(-1)).max() > ALPHA_MAX
+            )
+            blocks.append(_Block(ids, slots, can_clamp, bounds, pixels))
+            begin = stop
     return blocks
 
 
@@ -496,7 +521,7 @@ def _block_forward(
     n_pix, n_cells, k = alpha.shape
     coeffs = rows[:, :N_COEFFS].t()  # [6, t K]
     for quadrant, first, stop in block.quadrants:  # log2(alpha)
-        torch.mm(basis2[quadrant], coeffs[:, first * k : stop * k], out=alpha[:, first:stop].view(n_pix, -1))
+        torch.mm(_basis_of(basis2, quadrant), coeffs[:, first * k : stop * k], out=alpha[:, first:stop].view(n_pix, -1))
     F.threshold_(alpha, -MAX_EXPONENT * LOG2_E, -MAX_EXPONENT * LOG2_E)  # clamp from below
     alpha.exp2_()
     F.threshold_(alpha, ALPHA_MIN, 0.0)  # gsplat skips alpha < 1/255
@@ -550,6 +575,11 @@ def _build_table(means2d: Tensor, conics: Tensor, opacities: Tensor, features: T
         table[n_isect, 0] = PAD_EXPONENT
 
 
+def _basis_of(basis: Tensor, quadrant: int) -> Tensor:
+    """[P, 6] monomials of one quadrant's pixels, or (quadrant -1) of the whole tile, quadrant-major."""
+    return basis.reshape(-1, N_COEFFS) if quadrant < 0 else basis[quadrant]
+
+
 class _Rasterize(torch.autograd.Function):
     """Intersection table and front-to-back compositing of cell blocks.
 
@@ -568,9 +598,9 @@ class _Rasterize(torch.autograd.Function):
         flat = plan.flat_ids
         n_isect, n_feat = len(flat), features.shape[-1]
         n_cols = N_COEFFS + n_feat + 2
-        n_pix = plan.basis.shape[1]
+        n_sub, cell_pixels = plan.basis.shape[0], plan.basis.shape[1]
         need_grad = bool(any(ctx.needs_input_grad[:5]))
-        sizes = [b.slots.numel() * n_pix for b in plan.blocks]  # t K P
+        sizes = [b.slots.numel() * b.pixels for b in plan.blocks]  # t K P
         save = need_grad and 2 * sum(sizes) * means2d.element_size() <= SAVE_BUDGET_BYTES
         kept = _take((n_isect + 1) * n_cols + 7 * n_isect + (2 * sum(sizes) if save else 0), means2d)
         carve_kept = _Carver(kept)
@@ -581,9 +611,10 @@ class _Rasterize(torch.autograd.Function):
 
         # ---- compositing
         basis2 = plan.basis * LOG2_E
-        out = means2d.new_zeros(plan.n_cells, n_cols - N_COEFFS, n_pix)  # channels before pixels: fast bmm
+        n_out = n_cols - N_COEFFS
+        out = means2d.new_zeros(plan.n_cells, n_out, cell_pixels)  # channels before pixels: fast bmm
         # per block: rows, 2 [P, t, K + 1] temporaries and, unless kept, alpha and weights
-        work = max((b.slots.numel() * n_cols + 2 * (s + b.slots.shape[0] * n_pix) + (0 if save else 2 * s)
+        work = max((b.slots.numel() * n_cols + 2 * (s + b.slots.shape[0] * b.pixels) + (0 if save else 2 * s)
                     for b, s in zip(plan.blocks, sizes)), default=0)
         workspace = _take(work, means2d)
         saved: List[Tuple[Tensor, Tensor, Optional[Tensor]]] = []
@@ -592,10 +623,15 @@ class _Rasterize(torch.autograd.Function):
             carve = _Carver(workspace)
             rows = torch.index_select(table, 0, block.slots.view(-1), out=carve(t * k, n_cols))
             carve_out = carve_kept if save else carve
-            alpha, weights = carve_out(n_pix, t, k), carve_out(n_pix, t, k)
+            alpha, weights = carve_out(block.pixels, t, k), carve_out(block.pixels, t, k)
             unclamped = _block_forward(basis2, rows, block, need_grad, alpha, weights, carve)
             feats_t = rows.view(t, k, n_cols)[..., N_COEFFS:].transpose(1, 2)  # [t, F, K]
-            out.index_copy_(0, block.cells, torch.bmm(feats_t, weights.permute(1, 2, 0)))
+            colours = torch.bmm(feats_t, weights.permute(1, 2, 0))  # [t, F, P]
+            if block.quadrants[0][0] < 0:  # whole tiles: their pixels are quadrant-major, 4 cells each
+                colours = colours.view(t, n_out, n_sub, cell_pixels).transpose(1, 2)
+                out.view(-1, n_sub, n_out, cell_pixels).index_copy_(0, block.cells, colours)
+            else:
+                out.index_copy_(0, block.cells, colours)
             if save:
                 saved.append((weights, alpha, unclamped))
         _give(workspace)
@@ -616,7 +652,7 @@ class _Rasterize(torch.autograd.Function):
         flat = plan.flat_ids
         n_isect, n_feat = len(flat), feat_shape[-1]
         n_cols = N_COEFFS + n_feat + 2
-        n_pix = plan.basis.shape[1]
+        n_sub, cell_pixels = plan.basis.shape[0], plan.basis.shape[1]
         if kept is None:  # a second backward through the graph (retain_graph): rebuild
             kept = _take((n_isect + 1) * n_cols + 7 * n_isect, means2d)
             carve_kept = _Carver(kept)
@@ -630,8 +666,8 @@ class _Rasterize(torch.autograd.Function):
         # per block: rows, h, g, its cumsum (reused for the per-slot gradients), [t, F, K] feature
         # gradients (and the forward's buffers when recomputing)
         work = max(
-            (b.slots.numel() * (n_cols + 3 * n_pix + n_feat + 2)
-             + (4 * b.slots.numel() * n_pix + 2 * b.slots.shape[0] * n_pix if recompute else 0)
+            (b.slots.numel() * (n_cols + 3 * b.pixels + n_feat + 2)
+             + (4 * b.slots.numel() * b.pixels + 2 * b.slots.shape[0] * b.pixels if recompute else 0)
              for b in plan.blocks),
             default=0,
         )
@@ -641,6 +677,7 @@ class _Rasterize(torch.autograd.Function):
         grad_table = workspace[work : work + n_cols * (n_isect + 1)].view(n_cols, n_isect + 1).zero_()
         for i, block in enumerate(plan.blocks):
             t, k = block.slots.shape
+            n_pix = block.pixels
             carve = _Carver(workspace)
             rows = torch.index_select(table, 0, block.slots.view(-1), out=carve(t * k, n_cols))
             feats_t = rows.view(t, k, n_cols)[..., N_COEFFS:].transpose(1, 2)  # [t, F, K]
@@ -650,7 +687,11 @@ class _Rasterize(torch.autograd.Function):
                 unclamped = _block_forward(plan.basis * LOG2_E, rows, block, True, ratio, weights, carve)
             else:
                 weights, ratio, unclamped = ctx.saved[i]
-            g_pix = grad_out.index_select(0, block.cells)  # [t, P, F]
+            if block.quadrants[0][0] < 0:  # whole tiles: 4 cells each, pixels quadrant-major
+                g_pix = grad_out.view(-1, n_sub, cell_pixels, n_feat + 2).index_select(0, block.cells)
+                g_pix = g_pix.view(t, n_pix, n_feat + 2)
+            else:
+                g_pix = grad_out.index_select(0, block.cells)  # [t, P, F]
             # with h_k = dL/dC . f_k:  dL/dalpha_k = T_k h_k - (sum_{j>k} w_j h_j) / (1 - alpha_k);
             # dalpha/dlog(alpha) = alpha, so dL/dlog(alpha_k) = w_k h_k - ratio_k * sum_{j>k} w_j h_j
             torch.bmm(g_pix, feats_t, out=h)
@@ -663,7 +704,7 @@ class _Rasterize(torch.autograd.Function):
             per_slot = later.view(-1)[: n_cols * t * k].view(n_cols, t * k)  # later is free again
             for quadrant, first, stop in block.quadrants:
                 torch.mm(
-                    plan.basis[quadrant].t(), g[:, first:stop].view(n_pix, -1),
+                    _basis_of(plan.basis, quadrant).t(), g[:, first:stop].view(n_pix, -1),
                     out=per_slot[:N_COEFFS, first * k : stop * k],
                 )
             torch.bmm(g_pix.transpose(1, 2), weights.permute(1, 0, 2), out=g_feat)
