@@ -157,7 +157,8 @@ def _depth_keys(depths: Tensor) -> Tensor:
 
 
 #: bands of cells (half-tile rows) per Gaussian whose pixel columns are cut to the ellipse: as
-#: many as the tallest Gaussian needs, within BAND_ELEMENTS [bands, V] elements (at least 4)
+#: many as BAND_QUANTILE of the Gaussians need (at least 4), within BAND_ELEMENTS [bands, V] elements
+BAND_QUANTILE = 0.95
 BAND_ELEMENTS = 1 << 19
 _MIN_BANDS = 4
 #: slack in pixels on the ellipse's band extents (covers float rounding; only adds work)
@@ -180,8 +181,11 @@ def _band_columns(
     """
     f32 = torch.float32
     first_band = torch.floor(fy / band)
-    n_bands = int((torch.floor(ly / band) - first_band).max()) + 1 if len(fy) else 1
-    n_bands = max(1, min(n_bands, max(_MIN_BANDS, BAND_ELEMENTS // max(len(fy), 1))))
+    # enough bands for BAND_QUANTILE of the Gaussians (taller ones fall back to their box)
+    heights = (torch.floor(ly / band) - first_band).clamp_(0, 4095).long() + 1
+    cover = torch.cumsum(torch.bincount(heights), 0) if len(fy) else heights
+    n_bands = int((cover < BAND_QUANTILE * len(fy)).sum()) + 1
+    n_bands = max(1, min(len(cover) - 1, max(_MIN_BANDS, n_bands), BAND_ELEMENTS // max(len(fy), 1)))
     # [B, V] rows: bands lead, Gaussians contiguous (broadcasts along V stay fast)
     offsets = torch.arange(n_bands, dtype=cy.dtype, device=cy.device)[:, None] * band
     top = (first_band.to(cy.dtype) * band - cy + (PIXEL_CENTRE - _BAND_SLACK)) + offsets
