@@ -25,7 +25,7 @@ import random
 from copy import deepcopy
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Dict, List, Literal, Optional, Tuple, Type, Union
+from typing import Dict, List, Literal, Optional, Set, Tuple, Type, Union
 
 import numpy as np
 import torch
@@ -94,9 +94,10 @@ class EdygsDataManager(FullImageDatamanager):
                 raise ValueError("pair_events needs camera_res_scale_factor=1 (event maps are not resampled)")
             self.event_maps = meta["event_maps"].to(device=self.device, dtype=torch.float32)
         self._pair_rng = random.Random(config.train_cameras_sampling_seed)
-        self.time_window: Optional[Tuple[float, float]] = None
         times = self.train_cameras.times
-        self._train_times = (times.reshape(-1) if times is not None else torch.zeros(len(self.train_cameras))).cpu()
+        self._train_times: List[float] = times.reshape(-1).tolist() if times is not None else [0.0] * len(self.train_cameras)
+        self.time_window: Optional[Tuple[float, float]] = None
+        self._window_pairs: Optional[Set[Tuple[int, int]]] = None  # pairs inside time_window
         self.unseen_pairs: List[Tuple[int, int]] = self._shuffled_pairs()
 
     # -- setup ----------------------------------------------------------------------------------
@@ -142,30 +143,31 @@ class EdygsDataManager(FullImageDatamanager):
         return order
 
     def set_time_window(self, window: Optional[Tuple[float, float]]) -> None:
-        """Draw training latents only with normalised times in [lo, hi] (None: the whole clip).
+        """Draw training pairs only with both normalised times in [lo, hi] (None: the whole clip).
 
-        A window that holds no training pair is widened to the pair nearest its centre."""
+        A window that holds no training pair serves the pair nearest its centre."""
+        if window == self.time_window:
+            return
         self.time_window = window
-
-    def _in_window(self, pair: Tuple[int, int]) -> bool:
-        if self.time_window is None:
-            return True
-        lo, hi = self.time_window
+        if window is None:
+            self._window_pairs = None
+            return
+        lo, hi = window
         times = self._train_times
-        return lo <= float(times[pair[0]]) <= hi and lo <= float(times[pair[1]]) <= hi
+        inside = {p for p in self.pairs if lo <= times[p[0]] <= hi and lo <= times[p[1]] <= hi}
+        if not inside:
+            centre = 0.5 * (lo + hi)
+            inside = {min(self.pairs, key=lambda p: abs(0.5 * (times[p[0]] + times[p[1]]) - centre))}
+        self._window_pairs = inside
 
     def next_pair(self) -> Tuple[int, int]:
         """The next (i, i+1) train-camera pair of this epoch inside the time window; a new shuffled
         epoch starts when all were served (pairs outside the window are passed over for this epoch)."""
-        if self.time_window is not None and not any(self._in_window(p) for p in self.pairs):
-            centre = 0.5 * (self.time_window[0] + self.time_window[1])
-            nearest = min(self.pairs, key=lambda p: abs(float(self._train_times[p[0]] + self._train_times[p[1]]) / 2 - centre))
-            return nearest
         while True:
             pair = self.unseen_pairs.pop(0)
             if not self.unseen_pairs:
                 self.unseen_pairs = self._shuffled_pairs()
-            if self._in_window(pair):
+            if self._window_pairs is None or pair in self._window_pairs:
                 return pair
 
     def train_image(self, idx: int) -> torch.Tensor:

@@ -270,7 +270,7 @@ class EdygsModel(SplatExportView):
                 image = self._train_image(i)[..., :3].to(self.device)
                 residuals.append((out["rgb"][0] - image).abs().mean(dim=-1))
                 depths.append(torch.where(out["accumulation"][0, ..., 0] > 0.5, out["depth"][0, ..., 0], torch.zeros_like(masks[-1])))
-                cams_to_world.append(torch.linalg.inv(viewmats_from_c2w(self.camera_to_worlds(camera))[0]))
+                cams_to_world.append(c2w_opencv(self.camera_to_worlds(camera))[0])
         rendered = torch.stack(masks)
         message = f"[edygs] dynamic phase from step {self.step}: {len(masks)} mask-consistency targets"
         if not use_evidence:
@@ -468,10 +468,16 @@ class EdygsModel(SplatExportView):
         return metrics, images
 
 
+def c2w_opencv(c2w: Tensor) -> Tensor:
+    """[C, 3|4, 4] camera-to-world (OpenGL axes) -> [C, 4, 4] camera-to-world (OpenCV axes)."""
+    bottom = c2w.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(c2w.shape[0], 1, 4)
+    return torch.cat([torch.cat([c2w[:, :3, :3] * c2w.new_tensor(GL_TO_CV), c2w[:, :3, 3:4]], dim=-1), bottom], dim=1)
+
+
 def viewmats_from_c2w(c2w: Tensor) -> Tensor:
     """[C, 3|4, 4] camera-to-world (OpenGL axes) -> [C, 4, 4] world-to-camera (OpenCV axes)."""
-    rot = c2w[:, :3, :3] * c2w.new_tensor(GL_TO_CV)
-    trans = c2w[:, :3, 3:4]
+    cv = c2w_opencv(c2w)
+    rot, trans = cv[:, :3, :3], cv[:, :3, 3:4]
     rot_inv = rot.transpose(1, 2)
     top = torch.cat([rot_inv, -rot_inv @ trans], dim=-1)
     bottom = c2w.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(c2w.shape[0], 1, 4)

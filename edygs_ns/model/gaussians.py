@@ -60,6 +60,31 @@ def random_unit_quats(n: int, generator: Optional[torch.Generator] = None) -> Fl
     )
 
 
+def gaussian_tensors(
+    points: Float[Tensor, "N 3"],
+    rgb: Float[Tensor, "N 3"],
+    radii: Float[Tensor, "N"],
+    quats: Float[Tensor, "N 4"],
+    sh_degree: int,
+    opacity: float,
+    mask: float,
+) -> Dict[str, Tensor]:
+    """Raw attribute tensors, one per GAUSSIAN_ATTRIBUTES name: Gaussians at ``points`` with RGB in
+    [0, 1] (SH degree 0; higher bands zero), isotropic world ``radii``, the given opacity and mask m."""
+    n = points.shape[0]
+    features = torch.zeros(n, num_sh_bases(sh_degree), 3, device=points.device)
+    features[:, 0] = rgb_to_sh(rgb.float())
+    return {
+        "means": points.float().clone(),
+        "scales": torch.log(radii.float().clamp_min(MIN_INIT_SCALE))[:, None].repeat(1, 3),
+        "quats": quats.float(),
+        "features_dc": features[:, 0].contiguous(),
+        "features_rest": features[:, 1:].contiguous(),
+        "opacities": torch.full((n, 1), logit(opacity), device=points.device),
+        "mask_logit": torch.full((n, 1), logit(mask), device=points.device),
+    }
+
+
 def init_gaussians(
     points: Float[Tensor, "N 3"],
     colors: Optional[Tensor],
@@ -68,25 +93,16 @@ def init_gaussians(
     init_mask: float,
     seed: int = 0,
 ) -> nn.ParameterDict:
-    """Gaussians at ``points`` with colours (uint8 [N,3] or float in [0,1]) and mask m = init_mask."""
+    """Gaussians at ``points`` with colours (uint8 [N,3] or float in [0,1]; random when missing),
+    the 3DGS initial scale (mean distance to the nearest points), random rotations and mask m = init_mask."""
     n = points.shape[0]
     generator = torch.Generator().manual_seed(seed)
-    scales = torch.log(knn_mean_distance(points).clamp_min(MIN_INIT_SCALE))[:, None].repeat(1, 3)
-    features = torch.zeros(n, num_sh_bases(sh_degree), 3)
     if colors is not None and len(colors) == n:
         rgb = colors.float() / 255.0 if colors.dtype == torch.uint8 else colors.float()
-        features[:, 0] = rgb_to_sh(rgb)
     else:
-        features[:, 0] = rgb_to_sh(torch.rand(n, 3, generator=generator))
-    params: Dict[str, Tensor] = {
-        "means": points.float().clone(),
-        "scales": scales,
-        "quats": random_unit_quats(n, generator),
-        "features_dc": features[:, 0].contiguous(),
-        "features_rest": features[:, 1:].contiguous(),
-        "opacities": torch.full((n, 1), logit(init_opacity)),
-        "mask_logit": torch.full((n, 1), logit(init_mask)),
-    }
+        rgb = torch.rand(n, 3, generator=generator)
+    quats = random_unit_quats(n, generator)
+    params = gaussian_tensors(points, rgb, knn_mean_distance(points), quats, sh_degree, init_opacity, init_mask)
     return nn.ParameterDict({name: nn.Parameter(params[name]) for name in GAUSSIAN_ATTRIBUTES})
 
 
@@ -98,19 +114,7 @@ def seed_tensors(
     opacity: float,
     mask: float,
 ) -> Dict[str, Tensor]:
-    """Raw attribute tensors (one per GAUSSIAN_ATTRIBUTES name) of isotropic Gaussians at ``points``
-    with RGB ``colors`` in [0, 1], world ``radii``, the given opacity and motion mask m."""
-    n = points.shape[0]
-    features = torch.zeros(n, num_sh_bases(sh_degree), 3, device=points.device)
-    features[:, 0] = rgb_to_sh(colors.float())
-    quats = torch.zeros(n, 4, device=points.device)
+    """Raw attribute tensors of isotropic, unrotated Gaussians (dynamic seeds) at ``points``."""
+    quats = torch.zeros(points.shape[0], 4, device=points.device)
     quats[:, 0] = 1.0
-    return {
-        "means": points.float(),
-        "scales": torch.log(radii.float().clamp_min(MIN_INIT_SCALE))[:, None].repeat(1, 3),
-        "quats": quats,
-        "features_dc": features[:, 0].contiguous(),
-        "features_rest": features[:, 1:].contiguous(),
-        "opacities": torch.full((n, 1), logit(opacity), device=points.device),
-        "mask_logit": torch.full((n, 1), logit(mask), device=points.device),
-    }
+    return gaussian_tensors(points, colors, radii, quats, sh_degree, opacity, mask)

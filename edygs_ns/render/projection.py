@@ -46,24 +46,6 @@ class Projection:
     radii: Int[Tensor, "C N"]
 
 
-def quat_to_rotmat(quats: Float[Tensor, "N 4"]) -> Float[Tensor, "N 3 3"]:
-    """Rotation matrices from (not necessarily unit) quaternions in wxyz order."""
-    q = quats / quats.norm(dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    rows = [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ]
-    return torch.stack(rows, dim=-1).reshape(quats.shape[:-1] + (3, 3))
-
-
-def covariance_3d(quats: Float[Tensor, "N 4"], scales: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3 3"]:
-    """World covariance R diag(s)^2 R^T of each Gaussian (scales are standard deviations)."""
-    m = quat_to_rotmat(quats) * scales[:, None, :]
-    return m @ m.transpose(-1, -2)
-
-
 def project_gaussians(
     means: Float[Tensor, "N 3"],
     quats: Float[Tensor, "N 4"],

@@ -598,7 +598,6 @@ class _Rasterize(torch.autograd.Function):
     def forward(  # type: ignore[override]
         ctx, means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, depths: Tensor, plan: _Plan
     ) -> Tensor:
-        n_cams, n = means2d.shape[0], opacities.shape[0]
         flat = plan.flat_ids
         n_isect, n_feat = len(flat), features.shape[-1]
         n_cols = N_COEFFS + n_feat + 2
