@@ -120,6 +120,31 @@ def test_colmap_poses_align_ground_truth(tmp_path):
     np.testing.assert_allclose(_original_poses(out), expected[:, :3], atol=1e-3)
 
 
+def test_pose_errors_come_out_in_ground_truth_units(tmp_path):
+    """COLMAP's frame is 2.5x the ground truth's: ATE is reported in the ground truth's units."""
+    from edygs_ns.eval.pose_alignment import TrainPoses, pose_rows, to_homogeneous
+    from edygs_ns.eval.trajectory import trajectory_metrics
+
+    scene = write_processed_scene(tmp_path / "scene", pose_source="colmap")
+    meta = json.loads((scene.root / "transforms.json").read_text())
+    colmap_scale = 2.5
+    rng = np.random.default_rng(1)
+    for frame in meta["frames"]:
+        c2w = np.array(frame["transform_matrix"])
+        c2w[:3, 3] = colmap_scale * (c2w[:3, 3] + rng.normal(0.0, 0.05, 3))  # 0.05 GT units of noise
+        frame["transform_matrix"] = c2w.tolist()
+    (scene.root / "transforms.json").write_text(json.dumps(meta))
+    out = _parse(scene.root, "train")
+    assert out.metadata["gt_units_scale"] == pytest.approx(colmap_scale * out.dataparser_scale, rel=0.05)
+    cameras = to_homogeneous(out.cameras.camera_to_worlds)
+    rows = pose_rows(TrainPoses(initial=cameras, refined=cameras, gt=to_homogeneous(out.metadata["gt_camera_to_worlds"]),
+                                scale=out.metadata["gt_units_scale"]))  # fmt: skip
+    stored = np.stack([np.array(f["transform_matrix"]) for f in sorted(meta["frames"], key=lambda f: f["time_us"])])
+    direct = trajectory_metrics(stored, scene.c2w)["ate"]  # estimate vs the untouched ground truth
+    assert 0.02 < direct < 0.1
+    assert rows["poses (initial)"]["ate"] == pytest.approx(direct, rel=1e-3)
+
+
 def test_fallback_to_interval_without_novel_views(tmp_path, capsys):
     scene = write_processed_scene(tmp_path / "scene", n_blurry=4, with_gt=False)
     parser = EdygsDataParserConfig(data=scene.root, eval_interval=2).setup()

@@ -109,6 +109,11 @@ def test_form_b_colmap_registers_and_poses_match_ground_truth(raw: Path, tmp_pat
     gt = _gt_poses(raw, meta["frames"])
     path_diameter = json.loads((raw / "scene.json").read_text())["camera_path_diameter"]
     assert ate_rmse(est, gt) < 0.05 * path_diameter
+    # the capture's camera.json was used and kept fixed
+    calibration = json.loads((raw / "camera.json").read_text())
+    assert (meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"]) == pytest.approx(
+        (calibration["fl_x"], calibration["fl_y"], calibration["cx"], calibration["cy"]), rel=1e-6)
+    assert report["camera_setting"].startswith("calibrated") and "camera.json" in report["camera_setting"]
     # The sparse points sit in the poses' world frame: in front of a camera, inside its image.
     xyz, _ = read_ply(tmp_path / "scene" / "sparse_pc.ply")
     u, v, depth = _project(xyz.astype(np.float64), est[len(est) // 2], meta)
@@ -372,3 +377,51 @@ def test_undistorter_maps_distorted_dots_to_pinhole_projections() -> None:
         intr = undistort.intrinsics
         expected = (intr.fl_x * point[0] / point[2] + intr.cx - 0.5, intr.fl_y * point[1] / point[2] + intr.cy - 0.5)
         assert abs(col - expected[0]) <= 1.5 and abs(row - expected[1]) <= 1.5
+
+
+def test_colmap_estimates_the_focal_length_without_calibration(raw: Path, tmp_path: Path) -> None:
+    config = _config(tmp_path / "scene", raw)
+    report = process(replace(config, colmap=replace(COLMAP, use_calibration=False)))
+    meta = json.loads((tmp_path / "scene" / "transforms.json").read_text())
+    calibration = json.loads((raw / "camera.json").read_text())
+    assert meta["fl_x"] != pytest.approx(calibration["fl_x"], rel=1e-3)  # estimated, not the calibration
+    assert "not used" in report["camera_setting"]
+
+
+def test_read_calibration_rescales_and_names_bad_files(tmp_path: Path) -> None:
+    from edygs_ns.preprocess.inputs import read_calibration
+
+    good = tmp_path / "camera.json"
+    good.write_text(json.dumps({"w": 320, "h": 240, "fl_x": 300.0, "fl_y": 310.0, "cx": 161.0, "cy": 119.0}))
+    intr = read_calibration(good, (120, 160))  # frames downscaled by 2
+    assert (intr.width, intr.height, intr.fl_x, intr.fl_y, intr.cx, intr.cy) == (160, 120, 150.0, 155.0, 80.5, 59.5)
+    angle = tmp_path / "angle.json"
+    angle.write_text(json.dumps({"w": 100, "h": 50, "camera_angle_x": 2 * np.arctan(0.5)}))
+    assert read_calibration(angle, (50, 100)).fl_x == pytest.approx(100.0)
+    cases = {"missing.json": None, "notjson.json": "{", "nofocal.json": json.dumps({"w": 320, "h": 240}),
+             "aspect.json": json.dumps({"w": 320, "h": 320, "fl_x": 300.0}),
+             "negative.json": json.dumps({"w": 320, "h": 240, "fl_x": -1.0})}
+    messages = {"missing.json": "not found", "notjson.json": "not valid JSON", "nofocal.json": "no focal length",
+                "aspect.json": "aspect ratio", "negative.json": "must be positive"}
+    for name, text in cases.items():
+        path = tmp_path / name
+        if text is not None:
+            path.write_text(text)
+        with pytest.raises((ValueError, FileNotFoundError), match=messages[name]) as err:
+            read_calibration(path, (240, 320))
+        assert str(path) in str(err.value)
+
+
+def test_with_calibration_sets_fixed_camera_params() -> None:
+    from edygs_ns.data.layouts.common import Intrinsics
+    from edygs_ns.preprocess.colmap import with_calibration
+
+    square = Intrinsics(128, 96, 110.5, 110.5, 64.0, 48.0)
+    config, note = with_calibration(ColmapConfig(), square)
+    assert (config.camera_model, config.camera_params, config.refine_focal_length) == ("SIMPLE_PINHOLE", "110.5,64,48", False)
+    config, _ = with_calibration(ColmapConfig(), Intrinsics(128, 96, 110.0, 120.0, 64.0, 48.0))
+    assert (config.camera_model, config.camera_params) == ("PINHOLE", "110,120,64,48")
+    by_hand = ColmapConfig(camera_params="100,64,48")
+    assert with_calibration(by_hand, square)[0] is by_hand
+    assert with_calibration(ColmapConfig(use_calibration=False), square)[0].camera_params is None
+    assert with_calibration(ColmapConfig(), None)[0].refine_focal_length

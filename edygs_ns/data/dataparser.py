@@ -19,6 +19,9 @@ the EDyGS datamanager and model read:
 ``gt_image_filenames``    sharp ground truth aligned with the cameras (only when it exists)
 ``gt_mask_filenames``     ground-truth motion masks aligned with the cameras (only when they exist)
 ``gt_camera_to_worlds``   float32 [N, 3, 4] ground-truth poses, transformed like the cameras
+``gt_units_scale``        float: length of one ground-truth unit in this frame (the dataparser
+                          scale times the Sim(3) scale that moved the ground truth into the
+                          estimated poses' frame); trajectory errors divide by it
 ``pose_source``           where the latent poses came from ("given", "colmap", ...)
 ========================  =====================================================================
 
@@ -40,7 +43,7 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from edygs_ns.data.layouts import read_scene
-from edygs_ns.data.layouts.common import Intrinsics, SceneRecord
+from edygs_ns.data.layouts.common import GT_ALIGNMENT_SCALE_NOTE, Intrinsics, SceneRecord
 
 #: Below this camera-centre extent (after centring) poses are not auto-scaled (it would blow up).
 MIN_POSE_EXTENT = 1e-6
@@ -292,6 +295,8 @@ class EdygsDataParser(DataParser):
             meta["gt_mask_filenames"] = [record.gt_mask_paths[i] for i in chosen]
         if record.gt_c2w is not None:
             meta["gt_camera_to_worlds"] = self._transform.poses(record.gt_c2w[chosen])
+            gt_scale = float((record.notes or {}).get(GT_ALIGNMENT_SCALE_NOTE, 1.0))
+            meta["gt_units_scale"] = float(self._transform.scale) * gt_scale
         return self._finish(record, cameras, images, meta)
 
     def _novel_outputs(self, record: SceneRecord) -> DataparserOutputs:

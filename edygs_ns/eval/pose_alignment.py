@@ -54,7 +54,7 @@ def to_homogeneous(c2w: Union[Tensor, np.ndarray]) -> np.ndarray:
 def scale_translations(c2w: np.ndarray, factor: float) -> np.ndarray:
     """Copy of poses [N, 4, 4] with camera centres multiplied by `factor` (rotations unchanged).
 
-    Used to undo the dataparser's scale so that trajectory errors come out in the capture's units.
+    Used to undo the frame's scale so that trajectory errors come out in the ground truth's units.
     """
     out = np.array(c2w, dtype=np.float64, copy=True)
     out[:, :3, 3] *= factor
@@ -141,7 +141,8 @@ def align_cameras(cameras: Cameras, sim3: Optional[Sim3]) -> Cameras:
 
 @dataclass
 class TrainPoses:
-    """Training-latent poses [N, 4, 4] float64 in the dataparser frame, and the dataparser scale."""
+    """Training-latent poses [N, 4, 4] float64 in the dataparser frame, and `scale`: the length of
+    one ground-truth unit in that frame (dataparser metadata "gt_units_scale")."""
 
     initial: np.ndarray
     refined: np.ndarray
@@ -151,7 +152,7 @@ class TrainPoses:
 
 
 def pose_rows(poses: TrainPoses) -> Dict[str, Dict[str, Any]]:
-    """Trajectory metrics of the initial and refined poses (POSE_METRIC_KEYS), in capture units.
+    """Trajectory metrics of the initial and refined poses (POSE_METRIC_KEYS), in ground-truth units.
 
     A pose that cannot be scored (no ground truth, too few poses) gets the reason string for
     every key, which the report shows as "n/a".

@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import json
 import shutil
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Dict, List, Literal, Optional, Sequence
+from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -33,6 +33,8 @@ RESULT_ARRAYS = "result.npz"
 RESULT_JSON = "result.json"
 #: Images registered by the mapper's initial pair.
 INITIAL_PAIR = 2
+#: Relative difference of fx and fy below which a calibration counts as square-pixelled.
+SQUARE_PIXEL_TOLERANCE = 1e-3
 #: Reconstruction id COLMAP gives the first camera in a fresh database.
 FIRST_CAMERA_ID = 1
 
@@ -52,6 +54,11 @@ class ColmapConfig:
     principal point with pixel centres at +0.5). None: COLMAP starts from 1.2 x the larger image side."""
     refine_focal_length: bool = True
     """Let bundle adjustment refine the focal length (and distortion); False keeps camera_params fixed."""
+    use_calibration: bool = True
+    """When the capture's intrinsics are known (--intrinsics, camera.json beside the exposure table, or
+    an E2NeRF / EvDeblurNeRF scene's own) and camera_params is not set: give them to COLMAP and keep
+    them fixed. Small, narrow-baseline captures do not constrain the focal length: on the built-in
+    scene COLMAP's own estimate comes out 35 % too long, which bends the trajectory and the geometry."""
     matching_overlap: int = 10
     """Sequential matching: each latent is matched with this many following latents."""
     quadratic_overlap: bool = True
@@ -70,6 +77,33 @@ class ColmapConfig:
     """Seed of COLMAP's RANSAC and mapper (multi-threaded runs can still differ slightly)."""
     extraction_batch: int = 16
     """Latents per feature-extraction call (granularity of the progress bar)."""
+
+
+def with_calibration(config: ColmapConfig, intrinsics: Any) -> Tuple[ColmapConfig, str]:
+    """`config` set up to use a known pinhole calibration, and a line saying what was done.
+
+    Args:
+        config: the user's COLMAP settings.
+        intrinsics: an edygs_ns.data.layouts.common.Intrinsics at the latents' resolution, or None.
+
+    Returns:
+        (config unchanged when there is no calibration, when use_calibration is off or when
+        camera_params is set by hand; else a copy with camera_params from the calibration and the
+        focal length fixed. SIMPLE_PINHOLE becomes PINHOLE when fx and fy differ.)
+    """
+    if intrinsics is None:
+        return config, "no calibration: COLMAP estimates the focal length"
+    if not config.use_calibration:
+        return config, "calibration known but not used (--colmap.no-use-calibration)"
+    if config.camera_params is not None:
+        return config, "calibration known; --colmap.camera-params given by hand is used instead"
+    fx, fy, cx, cy = intrinsics.fl_x, intrinsics.fl_y, intrinsics.cx, intrinsics.cy
+    model = config.camera_model
+    if model == "SIMPLE_PINHOLE" and abs(fx - fy) > SQUARE_PIXEL_TOLERANCE * fx:
+        model = "PINHOLE"
+    values = {"SIMPLE_PINHOLE": [fx, cx, cy], "PINHOLE": [fx, fy, cx, cy], "OPENCV": [fx, fy, cx, cy, 0.0, 0.0, 0.0, 0.0]}[model]
+    params = ",".join(f"{v:.10g}" for v in values)
+    return replace(config, camera_model=model, camera_params=params, refine_focal_length=False), f"calibrated {model} {params}, fixed"
 
 
 @dataclass

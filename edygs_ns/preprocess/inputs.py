@@ -56,6 +56,10 @@ GT_DIR_NAME = "gt"
 GT_TRANSFORMS_NAME = "transforms.json"
 #: Scene description written by edygs-synth next to exposures.csv (carries the scene extent).
 SCENE_JSON_NAME = "scene.json"
+#: Camera calibration file looked for next to an exposure table when --intrinsics is not given.
+CALIBRATION_NAME = "camera.json"
+#: Largest relative difference of width/height aspect between a calibration and the frames.
+CALIBRATION_ASPECT_TOLERANCE = 1e-2
 #: E2NeRF synthetic scene files.
 E2NERF_TRAIN_JSON = "transform_train.json"
 E2NERF_TRAIN_DIR = "train"
@@ -105,6 +109,11 @@ class InputConfig:
     their CDAVIS scenes us). "auto": the unit under which the events last about as long as the images."""
     evdeblurnerf_timestamps_unit: Literal["us", "ns"] = "us"
     """Unit of an EvDeblurNeRF scene's timestamps.npz and all_timestamps.npy (the authors' configs: us)."""
+    intrinsics: Optional[Path] = None
+    """The camera's calibration: a JSON file with w, h and fl_x [, fl_y, cx, cy] (or camera_angle_x) in
+    pixels of the full-size frames (a nerfstudio transforms.json works). COLMAP then uses it (see
+    --colmap.use-calibration). Default: camera.json next to the exposure table if there is one; the
+    E2NeRF and EvDeblurNeRF scenes carry their own."""
     given_poses: Optional[Path] = None
     """With --poses given: a transforms.json with one frame per latent (blurry_index, latent_index or
     time_us, transform_matrix). Default: gt/transforms.json next to the exposure table, or the E2NeRF /
@@ -172,6 +181,8 @@ class Capture:
         event_count_scale: factor applied to accumulated counts (1 / downscale², the area
             average that keeps count * theta a log-intensity change).
         given_poses: poses from the input, when asked for and available.
+        calibration: the camera's intrinsics at the capture's (downscaled) resolution, when known.
+        calibration_source: where `calibration` came from.
         gt_dir: ground-truth folder to copy into the processed scene, if any.
         scene_json: the raw capture's scene.json, if any.
         sharp_views: sharp views to write as ground-truth novel views, if the input has them.
@@ -188,6 +199,8 @@ class Capture:
     binned_events: Optional[np.ndarray]
     event_count_scale: float
     given_poses: Optional[GivenPoses] = None
+    calibration: Optional[Intrinsics] = None
+    calibration_source: Optional[str] = None
     gt_dir: Optional[Path] = None
     scene_json: Optional[Path] = None
     sharp_views: Optional[SharpViews] = None
@@ -375,6 +388,39 @@ def _intrinsics_from_json(meta: dict, path: Path) -> Intrinsics:
     else:
         raise ValueError(f"{path}: no focal length (fl_x or camera_angle_x)")
     return Intrinsics(w, h, fl_x, fl_y, float(meta.get("cx", w / 2.0)), float(meta.get("cy", h / 2.0)))
+
+
+def read_calibration(path: Path, frame_size: Tuple[int, int]) -> Intrinsics:
+    """A camera calibration JSON (see InputConfig.intrinsics) rescaled to frames of `frame_size`.
+
+    Args:
+        path: the JSON file.
+        frame_size: (height, width) of the capture's frames after any downscaling.
+
+    Raises:
+        FileNotFoundError / ValueError: missing file, bad JSON, missing fields, or an aspect ratio
+            that differs from the frames' (a calibration of another camera or crop).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: camera calibration file not found")
+    try:
+        meta = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not valid JSON ({err})") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{path}: expected a JSON object with w, h and fl_x")
+    intrinsics = _intrinsics_from_json(meta, path)
+    if min(intrinsics.width, intrinsics.height) <= 0 or min(intrinsics.fl_x, intrinsics.fl_y) <= 0:
+        raise ValueError(f"{path}: image size and focal lengths must be positive, got {intrinsics}")
+    height, width = frame_size
+    calib_aspect, frame_aspect = intrinsics.width / intrinsics.height, width / height
+    if abs(calib_aspect / frame_aspect - 1.0) > CALIBRATION_ASPECT_TOLERANCE:
+        raise ValueError(
+            f"{path}: calibrated for {intrinsics.width}x{intrinsics.height} images, but the frames are "
+            f"{width}x{height} (another aspect ratio: a calibration of another camera or crop?)"
+        )
+    return intrinsics.resized(width, height)
 
 
 def poses_from_transforms(path: Path, exposures: Sequence[Exposure], k: int, frame_size: Tuple[int, int]) -> GivenPoses:
@@ -712,6 +758,11 @@ def load_capture(config: InputConfig, k: int, want_given_poses: bool) -> Capture
     loader = {"aedat4": load_aedat4, "exposures": load_exposure_table, "e2nerf": load_e2nerf,
               "evdeblurnerf": load_evdeblurnerf}[forms[0]]
     capture = loader(config, k)
+    try:
+        _attach_calibration(capture, config)
+    except Exception:
+        capture.close()
+        raise
     if want_given_poses:
         try:
             _attach_given_poses(capture, config, k)
@@ -719,6 +770,23 @@ def load_capture(config: InputConfig, k: int, want_given_poses: bool) -> Capture
             capture.close()
             raise
     return capture
+
+
+def _attach_calibration(capture: Capture, config: InputConfig) -> None:
+    """Set capture.calibration from --intrinsics, camera.json beside an exposure table, or the
+    intrinsics an E2NeRF / EvDeblurNeRF scene carries."""
+    path: Optional[Path] = None
+    if config.intrinsics is not None:
+        path = Path(config.intrinsics)
+    elif config.exposures is not None and (Path(config.exposures).resolve().parent / CALIBRATION_NAME).is_file():
+        path = Path(config.exposures).resolve().parent / CALIBRATION_NAME
+    if path is not None:
+        capture.calibration = read_calibration(path, (capture.height, capture.width))
+        capture.calibration_source = str(path)
+        capture.input_paths.append(path)
+    elif capture.given_poses is not None:
+        capture.calibration = capture.given_poses.intrinsics
+        capture.calibration_source = capture.given_poses.source
 
 
 def _attach_given_poses(capture: Capture, config: InputConfig, k: int) -> None:

@@ -8,13 +8,14 @@ prints the markdown table; edygs_ns.eval.evaluate documents every output and the
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, Optional
 
 import tyro
 
 from edygs_ns.eval.evaluate import DEFAULT_MAX_GRIDS, EvalSplit, evaluate_run
+from edygs_ns.eval.novel_pose_fit import NovelPoseFitConfig
 
 
 @dataclass
@@ -35,6 +36,9 @@ class EvalCommand:
     align_novel: bool = True
     """Move the ground-truth novel cameras into the model's frame by the Sim(3) fitted between
     the ground-truth and the refined training poses before rendering them."""
+    novel_pose_fit: NovelPoseFitConfig = field(default_factory=NovelPoseFitConfig)
+    """Then fit each novel camera's pose to its image with the model frozen (the protocol of
+    pose-estimating NeRF/3DGS papers); --novel-pose-fit.steps 0 scores the aligned poses as they are."""
     method: Optional[str] = None
     """Row label of the run in the table; default its method name."""
 
@@ -43,6 +47,7 @@ class EvalCommand:
         return evaluate_run(
             self.load_config, self.output, lpips_weights=self.lpips_weights, split=self.split,
             max_grids=self.max_grids, align_novel=self.align_novel, method=self.method,
+            novel_pose_fit=self.novel_pose_fit,
         )  # fmt: skip
 
 

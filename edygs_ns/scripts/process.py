@@ -38,9 +38,9 @@ from typing_extensions import Annotated
 from edygs_ns.events.accumulate import exposure_bins, latent_times_us
 from edygs_ns.events.edi import EdiConfig, edi_from_frame
 from edygs_ns.events.exposures import Exposure, read_exposures
-from edygs_ns.preprocess.colmap import ColmapConfig, ColmapResult, registration_message, run_colmap
+from edygs_ns.preprocess.colmap import ColmapConfig, ColmapResult, registration_message, run_colmap, with_calibration
 from edygs_ns.data.layouts.common import Intrinsics
-from edygs_ns.preprocess.inputs import Capture, InputConfig, load_capture, read_image
+from edygs_ns.preprocess.inputs import CALIBRATION_NAME, Capture, InputConfig, load_capture, read_image
 from edygs_ns.preprocess.steps import StepRunner, file_signature, fingerprint, progress_bar
 from edygs_ns.preprocess.writer import (
     REPORT_NAME,
@@ -132,6 +132,10 @@ def _input_signature(config: InputConfig) -> List[Dict[str, Any]]:
         paths += _evdeblurnerf_files(Path(config.evdeblurnerf))
     if config.given_poses is not None:
         paths.append(Path(config.given_poses))
+    if config.intrinsics is not None:
+        paths.append(Path(config.intrinsics))
+    elif config.exposures is not None and (Path(config.exposures).resolve().parent / CALIBRATION_NAME).is_file():
+        paths.append(Path(config.exposures).resolve().parent / CALIBRATION_NAME)
     return [file_signature(p) for p in paths]
 
 
@@ -151,7 +155,7 @@ def _input_settings(config: InputConfig) -> Dict[str, Any]:
 
 def _input_roots(config: InputConfig) -> List[Path]:
     """Input files and folders the output folder must not contain."""
-    roots = [config.aedat4, config.events, config.e2nerf, config.evdeblurnerf, config.given_poses]
+    roots = [config.aedat4, config.events, config.e2nerf, config.evdeblurnerf, config.given_poses, config.intrinsics]
     if config.exposures is not None:
         roots.append(Path(config.exposures).resolve().parent)
     return [Path(p) for p in roots if p is not None]
@@ -215,6 +219,8 @@ class Pipeline:
             "gt_dir": str(gt_dir) if gt_dir is not None else None,
             "scene_json": str(capture.scene_json) if capture.scene_json is not None else None,
             "given_intrinsics": asdict(given.intrinsics) if given is not None else None,
+            "calibration": asdict(capture.calibration) if capture.calibration is not None else None,
+            "calibration_source": capture.calibration_source,
             "given_source": given.source if given is not None else None,
             "given_depth_range": list(given.depth_range) if given is not None and given.depth_range else None,
         }
@@ -282,11 +288,12 @@ class Pipeline:
         """COLMAP on the latents, or the given poses with random initial points."""
         names = [p.name for row in self.latent_paths() for p in row]
         if self.config.poses == "colmap":
-            result = run_colmap(self.work / "latents", names, self.work / COLMAP_WORK, self.config.colmap)
+            colmap, camera = self.colmap_settings()
+            result = run_colmap(self.work / "latents", names, self.work / COLMAP_WORK, colmap)
             result.save(self.work / COLMAP_WORK)
             error = f"{result.mean_reprojection_error:.3f} px" if np.isfinite(result.mean_reprojection_error) else "n/a"
             return (f"COLMAP registered {result.num_registered}/{len(names)} latents, {len(result.points_xyz):,} points, "
-                    f"mean reprojection error {error}, {result.num_reconstructions} model(s)")
+                    f"mean reprojection error {error}, {result.num_reconstructions} model(s); camera: {camera}")
         meta = self.capture_meta()
         with np.load(self.work / GIVEN_POSES_NPZ) as data:
             c2w = data["c2w"].reshape(-1, 4, 4)
@@ -298,6 +305,15 @@ class Pipeline:
         np.savez(self.work / POSES_NPZ, xyz=xyz, rgb=rgb, depth_range=np.asarray(depth_range))
         return (f"given poses for {len(names)} latents from {meta['given_source']}; {len(xyz):,} random points "
                 f"at depths {depth_range[0]:.3g}-{depth_range[1]:.3g}")
+
+    def colmap_settings(self) -> Tuple[ColmapConfig, str]:
+        """The COLMAP settings with the capture's calibration applied (with_calibration), and a note."""
+        meta = self.capture_meta()
+        calibration = meta.get("calibration")
+        config, note = with_calibration(self.config.colmap, Intrinsics(**calibration) if calibration else None)
+        if calibration:
+            note += f" (from {meta.get('calibration_source')})"
+        return config, note
 
     def _depth_range(self, meta: Dict[str, Any], c2w: np.ndarray) -> Tuple[float, float]:
         """Depth range of random points: config, input, scene.json's room, or the camera path."""
@@ -348,6 +364,7 @@ class Pipeline:
             "mean_reprojection_error_px": float(error) if np.isfinite(error) else None,
             "num_reconstructions": result.num_reconstructions,
             "camera": asdict(result.camera) if result.camera is not None else None,
+            "camera_setting": self.colmap_settings()[1],
         }
 
     def write(self) -> str:

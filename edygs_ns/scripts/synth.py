@@ -39,7 +39,7 @@ from edygs_ns.sim.trajectory import (
 )
 
 #: What write_synthetic_scene writes into its folder (and removes first when overwriting).
-OUTPUT_ENTRIES = ("exposures.csv", "frames", "events.h5", "gt", "scene.json")
+OUTPUT_ENTRIES = ("exposures.csv", "frames", "events.h5", "gt", "scene.json", "camera.json")
 #: Largest 8-bit pixel value.
 PNG_MAX = 255
 #: Sub-seeds drawn from the config seed, one per random component.
@@ -302,6 +302,7 @@ def write_synthetic_scene(config: SynthConfig) -> Path:
     """Write the synthetic scene as a raw capture in ``config.output_dir``.
 
     Writes exposures.csv, frames/NNNN.png (8-bit, linear values quantised directly), events.h5,
+    camera.json (the camera's calibration, as a real capture's would be: w, h, fl_x, fl_y, cx, cy),
     gt/ (transforms.json with the latent and novel frames, sharp/, mask/, novel/, novel_mask/)
     and scene.json (the config, event count and scene extent for ATE normalisation).
 
@@ -326,9 +327,10 @@ def write_synthetic_scene(config: SynthConfig) -> Path:
                  for p in range(config.n_frames)]
     write_exposures(folder / "exposures.csv", exposures, relative_to=folder)
     cam = world.camera
+    calibration = {"w": cam.width, "h": cam.height, "fl_x": cam.fl_x, "fl_y": cam.fl_y, "cx": cam.cx, "cy": cam.cy}
+    (folder / "camera.json").write_text(json.dumps(calibration, indent=2))
     transforms = {
-        "w": cam.width, "h": cam.height, "fl_x": cam.fl_x, "fl_y": cam.fl_y, "cx": cam.cx, "cy": cam.cy,
-        "camera_model": "PINHOLE", "k": config.k, "theta": config.contrast_threshold, "color_space": "linear",
+        **calibration, "camera_model": "PINHOLE", "k": config.k, "theta": config.contrast_threshold, "color_space": "linear",
         "frames": latent_records, "novel_frames": novel_records,
     }
     (folder / "gt" / "transforms.json").write_text(json.dumps(transforms, indent=2))

@@ -26,6 +26,9 @@ LAYOUT_NAMES: Tuple[str, ...] = ("processed", "e2nerf-synthetic", "e2nerf-real",
 POSE_SIZE = 4
 #: Largest 8-bit value.
 UINT8_MAX = 255
+#: Key of SceneRecord.notes holding the scale of the Sim(3) that moved the ground-truth poses
+#: into the estimated poses' frame (estimated units per ground-truth unit).
+GT_ALIGNMENT_SCALE_NOTE = "gt_alignment_scale"
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,7 @@ import numpy as np
 
 from edygs_ns.data.event_maps import load_event_maps_npy
 from edygs_ns.data.layouts.common import (
+    GT_ALIGNMENT_SCALE_NOTE,
     Intrinsics,
     SceneRecord,
     ViewSet,
@@ -199,7 +200,7 @@ def _align_gt_to_estimate(record: SceneRecord, source: Path) -> None:
     record.gt_c2w, sim3 = align_poses(record.gt_c2w, record.latent_c2w)
     if record.novel is not None:
         record.novel.camera_to_worlds = apply_sim3(record.novel.camera_to_worlds, sim3)
-    record.notes = dict(record.notes or {}, gt_alignment_scale=float(sim3[0]))
+    record.notes = dict(record.notes or {}, **{GT_ALIGNMENT_SCALE_NOTE: float(sim3[0])})
 
 
 def read_processed(root: Path, theta: Optional[float] = None, color_space: Optional[str] = None) -> SceneRecord:
