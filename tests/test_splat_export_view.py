@@ -21,6 +21,7 @@ from test_eval_cli import DYNAMIC_LOGIT, HEAD_WEIGHT_STD, shared_tiny_run
 from test_export import N_STATIC, _model
 
 from edygs_ns.model.edygs_model import EdygsModel
+from edygs_ns.model.ns_export_mask import MOTION_MASK_PROPERTY
 from edygs_ns.model.splat_export_view import (
     EXPORT_PROPERTIES,
     INHERITED_HELPERS,
@@ -136,7 +137,8 @@ def _deformed_copy(config_path: Path, root: Path) -> Path:
     for ckpt in sorted(source.glob("*.ckpt")):
         state = torch.load(ckpt, map_location="cpu", weights_only=False)
         model_state = state["pipeline"]
-        model_state["_model.gauss_params.mask_logit"].fill_(DYNAMIC_LOGIT)
+        logits = model_state["_model.gauss_params.mask_logit"]
+        logits.copy_(DYNAMIC_LOGIT + 2.0 * torch.rand(logits.shape, generator=gen))  # every one deforms, m varies
         model_state["_model.deformation.head_xyz.weight"].normal_(0.0, HEAD_WEIGHT_STD, generator=gen)
         torch.save(state, target / ckpt.name)
     return config.get_base_dir() / "config.yml"
@@ -166,7 +168,6 @@ def test_ns_export_gaussian_splat_writes_the_baked_gaussians(deformed_run, tmp_p
     _run([BIN / "ns-export", "gaussian-splat", "--load-config", config, "--output-dir", out], tmp_path)
     vertex = PlyData.read(str(out / "splat.ply"))["vertex"]
     ply = {p.name: np.asarray(vertex[p.name]) for p in vertex.properties}
-    assert "motion_mask" not in ply  # nerfstudio writes its fixed property set; edygs-export adds the mask
 
     model = pipeline.model
     baked = {k: v.cpu().numpy() for k, v in bake_gaussians(model, ENV_TIME).items()}
@@ -176,6 +177,9 @@ def test_ns_export_gaussian_splat_writes_the_baked_gaussians(deformed_run, tmp_p
     np.testing.assert_allclose(xyz, baked["means"][keep], atol=1e-6)
     np.testing.assert_allclose(np.stack([ply[f"scale_{i}"] for i in range(3)], 1), baked["log_scales"][keep], atol=1e-6)
     np.testing.assert_allclose(np.stack([ply[f"rot_{i}"] for i in range(4)], 1), baked["quats"][keep], atol=1e-6)
+    # the motion mask rides along, row for row, although nerfstudio's exporter has no such column
+    np.testing.assert_allclose(ply[MOTION_MASK_PROPERTY], baked["mask"][keep], atol=1e-7)
+    assert np.ptp(ply[MOTION_MASK_PROPERTY]) > 0.01  # varies, so a row mix-up would show
     # the environment's time won over config.yml's, and the deformation moved the Gaussians
     canonical = model.gauss_params["means"].detach().numpy()[keep]
     at_config_time = bake_gaussians(model, CONFIG_TIME)["means"].cpu().numpy()[keep]
@@ -207,3 +211,16 @@ def test_ns_render_interpolate_renders_at_the_fallback_time(deformed_run, tmp_pa
             camera.times = torch.full((1, 1), ENV_TIME)
             expected = model.get_outputs_for_camera(camera)["rgb"].numpy()
             np.testing.assert_allclose(image, expected, atol=PNG_TOLERANCE + 1e-6)  # ... but $EDYGS_TIME
+
+
+def test_exported_rows_match_a_filtered_subsequence():
+    from edygs_ns.model.ns_export_mask import exported_rows
+
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(50, 3)).astype(np.float32)
+    keep = np.sort(rng.choice(50, size=30, replace=False))
+    np.testing.assert_array_equal(exported_rows(xyz, xyz[keep]), keep)
+    moved = xyz[keep].copy()
+    moved[3, 0] += 1e-3  # a row that is not one of the model's centres
+    assert exported_rows(xyz, moved) is None
+    assert exported_rows(xyz[:0], xyz[:2]) is None

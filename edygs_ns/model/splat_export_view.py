@@ -16,7 +16,8 @@ behaviour. Every attribute ``SplatfactoModel`` defines is overridden here, in on
   calls ``.cuda()``: it must never run) and for splatfacto's internals (:data:`SPLATFACTO_INTERNALS`,
   which read splatfacto-only config and state and which only splatfacto's own methods call);
 * read-only properties giving the Gaussians as ``ns-export`` reads them (:data:`EXPORT_PROPERTIES`),
-  detached, with the deformation baked at :attr:`SplatExportView.fallback_time`;
+  detached, with the deformation baked at :attr:`SplatExportView.fallback_time`; reading ``means``
+  also makes the exported PLY carry ``motion_mask`` (edygs_ns.model.ns_export_mask);
 * ``set_background``: a no-op, renders keep ``config.background_color`` (the motion-mask channel
   needs a zero background).
 
@@ -43,6 +44,7 @@ from torch import Tensor
 from torch.nn import Parameter
 
 from edygs_ns.model.appearance import SH_C0, SH_OFFSET
+from edygs_ns.model.ns_export_mask import register_export_source
 
 #: Environment variable overriding the model config's ``fallback_time`` (normalised clip time).
 TIME_ENV = "EDYGS_TIME"
@@ -211,7 +213,9 @@ class SplatExportView(SplatfactoModel):
 
     @property
     def means(self) -> Tensor:
-        """[N, 3] centres at the fallback time."""
+        """[N, 3] centres at the fallback time. ns-export reads these first: that is where its PLY
+        learns to carry the motion mask (edygs_ns.model.ns_export_mask)."""
+        register_export_source(self)
         return self._baked()["means"]
 
     @property

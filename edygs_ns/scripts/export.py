@@ -18,8 +18,8 @@ assumes sRGB shows them darker than our renders.
 
 `ns-export gaussian-splat --load-config RUN/config.yml --output-dir DIR` also works (see
 edygs_ns/model/splat_export_view.py): the same baked Gaussians, at the time $EDYGS_TIME or the
-model config's `fallback_time` (default 0.0), but nerfstudio writes a fixed property set, so
-without `motion_mask`, and it drops Gaussians of opacity below 1/255.
+model config's `fallback_time` (default 0.0), with `motion_mask` too
+(edygs_ns/model/ns_export_mask.py); nerfstudio drops Gaussians of opacity below 1/255.
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ import torch
 import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from edygs_ns.model.ns_export_mask import MOTION_MASK_PROPERTY
 from edygs_ns.model.splat_export_view import bake_gaussians
 
 #: Number of SH coefficients per colour channel at degree 0.
@@ -41,8 +42,6 @@ DC_COEFFS = 1
 #: Binary PLY header pieces.
 PLY_FORMAT = "format binary_little_endian 1.0"
 PLY_FLOAT = "float"
-#: Name of the extra per-Gaussian property holding the motion-mask value.
-MOTION_MASK_PROPERTY = "motion_mask"
 #: Default output file name pattern (the time with TIME_DIGITS decimals).
 FILENAME_PATTERN = "gaussians_t{time}.ply"
 TIME_DIGITS = 3
