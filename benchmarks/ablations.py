@@ -50,6 +50,8 @@ VARIANTS: Tuple[Tuple[str, str, Any], ...] = (
 )
 INPUT_SPLIT = "input views"
 NOVEL_SPLIT = "novel views"
+#: Numbers kept for the reference images (EDI latents, blurry frames) scored on the input views.
+REFERENCE_KEYS = ("psnr", "ssim", "psnr_dynamic", "psnr_static")
 
 
 @dataclass
@@ -153,7 +155,7 @@ def row_of(metrics: Dict[str, Any], label: str, seconds: float) -> Dict[str, Any
     splits = metrics[label]
     row: Dict[str, Any] = {"train_seconds": seconds}
     for split, prefix in ((INPUT_SPLIT, "input"), (NOVEL_SPLIT, "novel")):
-        for key in ("psnr", "ssim", "lpips_alex", "mask_iou"):
+        for key in ("psnr", "ssim", "lpips_alex", "mask_iou", "psnr_dynamic", "psnr_static"):
             value = _mean(splits.get(split, {}).get(key))
             row[f"{prefix}_{key}"] = value if isinstance(value, (int, float)) else None
     for split, prefix in (("poses (initial)", "ate_initial"), ("poses (refined)", "ate_refined")):
@@ -169,8 +171,8 @@ def _fmt(value: Any, digits: int) -> str:
 def markdown(results: Dict[str, Any]) -> str:
     """Mean over seeds per variant."""
     lines = [
-        "| Variant | in PSNR↑ | in SSIM↑ | novel PSNR↑ | novel SSIM↑ | LPIPS(alex)↓ | mask IoU↑ | ATE init | ATE refined | train s |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| Variant | in PSNR↑ | in SSIM↑ | in PSNR dyn↑ | in PSNR static↑ | novel PSNR↑ | novel SSIM↑ | LPIPS(alex)↓ | mask IoU↑ | ATE init | ATE refined | train s |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for label, rows in results["rows"].items():
         def mean(key: str) -> Any:
@@ -179,13 +181,15 @@ def markdown(results: Dict[str, Any]) -> str:
 
         lpips = mean("input_lpips_alex")
         lines.append(
-            f"| {label} | {_fmt(mean('input_psnr'), 2)} | {_fmt(mean('input_ssim'), 4)} | {_fmt(mean('novel_psnr'), 2)} | "
+            f"| {label} | {_fmt(mean('input_psnr'), 2)} | {_fmt(mean('input_ssim'), 4)} | {_fmt(mean('input_psnr_dynamic'), 2)} | "
+            f"{_fmt(mean('input_psnr_static'), 2)} | {_fmt(mean('novel_psnr'), 2)} | "
             f"{_fmt(mean('novel_ssim'), 4)} | {'n/a (weights missing)' if lpips is None else f'{lpips:.4f}'} | "
             f"{_fmt(mean('input_mask_iou'), 3)} | {_fmt(mean('ate_initial'), 4)} | {_fmt(mean('ate_refined'), 4)} | {_fmt(mean('train_seconds'), 0)} |"
         )
     refs = results.get("references", {})
     for label, values in refs.items():
-        lines.append(f"| {label} (image itself) | {_fmt(values.get('psnr'), 2)} | {_fmt(values.get('ssim'), 4)} | | | | | | | |")
+        lines.append(f"| {label} (image itself) | {_fmt(values.get('psnr'), 2)} | {_fmt(values.get('ssim'), 4)} | "
+                     f"{_fmt(values.get('psnr_dynamic'), 2)} | {_fmt(values.get('psnr_static'), 2)} | | | | | | | |")
     return "\n".join(lines)
 
 
@@ -201,7 +205,7 @@ def main(cfg: AblationBenchConfig) -> Dict[str, Any]:
         "rows": {label: [] for label, _, _ in chosen},
         "references": {},
     }
-    ref_values: Dict[str, List[Tuple[float, float]]] = {}
+    ref_values: Dict[str, List[Dict[str, Any]]] = {}
     for seed in cfg.seeds:
         scene = make_scene(cfg, seed)
         for label, method, ablation in chosen:
@@ -213,10 +217,13 @@ def main(cfg: AblationBenchConfig) -> Dict[str, Any]:
             for ref_label in ("EDI latent", "blurry input"):
                 ref = metrics.get(ref_label, {}).get(INPUT_SPLIT)
                 if ref and method == "edygs" and ablation == "full":
-                    ref_values.setdefault(ref_label, []).append((_mean(ref["psnr"]), _mean(ref["ssim"])))
+                    ref_values.setdefault(ref_label, []).append({k: _mean(ref.get(k)) for k in REFERENCE_KEYS})
             (cfg.out / "results.json").write_text(json.dumps(results, indent=2))
-    for ref_label, pairs in ref_values.items():
-        results["references"][ref_label] = {"psnr": sum(p for p, _ in pairs) / len(pairs), "ssim": sum(s for _, s in pairs) / len(pairs)}
+    for ref_label, entries in ref_values.items():
+        results["references"][ref_label] = {
+            k: sum(e[k] for e in entries) / len(entries) if all(isinstance(e[k], (int, float)) for e in entries) else None
+            for k in REFERENCE_KEYS
+        }
     table = markdown(results)
     (cfg.out / "results.json").write_text(json.dumps(results, indent=2))
     (cfg.out / "results.md").write_text(

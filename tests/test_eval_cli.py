@@ -24,6 +24,7 @@ from edygs_ns.eval.evaluate import (
     NOVEL_SPLIT,
     PER_VIEW_KEY,
     POSE_METRIC_KEYS,
+    REGION_PSNR_KEYS,
     REFINED_POSES_SPLIT,
     TRAJECTORY_PNG,
     evaluate_run,
@@ -97,6 +98,9 @@ def test_evaluate_run_writes_every_metric_and_figure(run_config, tmp_path):
             assert isinstance(values[f"lpips_{net}"], str) and ".pth" in values[f"lpips_{net}"]
         assert len(values[PER_VIEW_KEY]["psnr"]) == n_views == len(values[PER_VIEW_KEY]["time"])
     assert "fitted to its image" in rows[NOVEL_SPLIT]["note"]  # test-time pose fitting ran
+    for key in REGION_PSNR_KEYS:  # the fixture's masks split every view into both regions
+        assert math.isfinite(rows[INPUT_SPLIT][key]["mean"]) and rows[INPUT_SPLIT][key]["n"] == 9
+        assert math.isfinite(stored[EDI_REFERENCE][INPUT_SPLIT][key]["mean"])
     for split in (INITIAL_POSES_SPLIT, REFINED_POSES_SPLIT):
         assert set(POSE_METRIC_KEYS) <= set(rows[split])
         assert all(math.isfinite(rows[split][k]) for k in POSE_METRIC_KEYS)
@@ -224,3 +228,18 @@ def test_novel_pose_fit_recovers_a_perturbed_camera(run_config):
     assert np.linalg.norm(err[0, :3, 3]) < 0.3 * np.linalg.norm(start_err[0, :3, 3])
     assert all(torch.equal(before[k], v) for k, v in model.state_dict().items())
     assert all(p.requires_grad for p in model.gauss_params.values())
+
+
+def test_region_psnr_splits_the_error_by_the_true_mask():
+    from edygs_ns.eval.evaluate import region_psnr
+
+    gt = torch.full((8, 8, 3), 0.5)
+    pred = gt.clone()
+    dynamic = torch.zeros(8, 8, dtype=torch.bool)
+    dynamic[:2] = True
+    pred[:2] += 0.1  # error only on the moving object: MSE 0.01 there
+    pred[2:] += 0.01  # MSE 1e-4 elsewhere
+    values = region_psnr(pred, gt, dynamic)
+    assert values["psnr_dynamic"] == pytest.approx(20.0, abs=1e-3) and values["psnr_static"] == pytest.approx(40.0, abs=1e-3)
+    assert region_psnr(pred, gt, None) == {}
+    assert set(region_psnr(pred, gt, torch.zeros(8, 8, dtype=torch.bool))) == {"psnr_static"}

@@ -76,6 +76,8 @@ EDI_REFERENCE = "EDI latent"
 BLURRY_REFERENCE = "blurry input"
 #: Metric keys every image split carries (a number summary, or a reason string when unavailable).
 IMAGE_METRIC_KEYS: Tuple[str, ...] = ("psnr", "ssim", "lpips_alex", "lpips_vgg", "mask_iou")
+#: PSNR over the true moving object and over the rest, where the scene has ground-truth masks.
+REGION_PSNR_KEYS: Tuple[str, ...] = ("psnr_dynamic", "psnr_static")
 #: LPIPS backbones reported (metric key "lpips_<net>").
 LPIPS_NETS: Tuple[str, ...] = ("alex", "vgg")
 #: Columns of the per-view grids.
@@ -327,13 +329,35 @@ def _to_numpy(image: Tensor) -> np.ndarray:
     return image.detach().float().cpu().clamp(0.0, 1.0).numpy()
 
 
-def _score_reference(files: Optional[List[Path]], index: int, gt: Tensor, into: MetricSet) -> Optional[Tensor]:
-    """PSNR/SSIM of a reference image (EDI latent, blurry input) against the ground truth."""
+def region_psnr(pred: Tensor, gt: Tensor, dynamic: Optional[Tensor]) -> Dict[str, float]:
+    """PSNR over the true dynamic region and over the rest ("psnr_dynamic", "psnr_static").
+
+    Args:
+        pred, gt: [H, W, 3] images in [0, 1].
+        dynamic: [H, W] bool ground-truth motion mask, or None.
+
+    Returns:
+        The two values, or fewer: a region with no pixel (or no mask) is left out.
+    """
+    if dynamic is None:
+        return {}
+    dynamic = dynamic.to(pred.device)
+    out: Dict[str, float] = {}
+    for key, region in (("psnr_dynamic", dynamic), ("psnr_static", ~dynamic)):
+        if bool(region.any()):
+            out[key] = psnr(pred, gt, mask=region)
+    return out
+
+
+def _score_reference(
+    files: Optional[List[Path]], index: int, gt: Tensor, into: MetricSet, dynamic: Optional[Tensor] = None
+) -> Optional[Tensor]:
+    """PSNR/SSIM (and region PSNRs) of a reference image (EDI latent, blurry input) against the ground truth."""
     if files is None:
         return None
     image = _read_rgb(files[index])
     if image.shape == gt.shape:
-        into.update({"psnr": psnr(image, gt), "ssim": ssim(image, gt)})
+        into.update({"psnr": psnr(image, gt), "ssim": ssim(image, gt), **region_psnr(image, gt, dynamic)})
     return image
 
 
@@ -373,14 +397,16 @@ def evaluate_group(
                 values = {"psnr": psnr(pred, gt), "ssim": ssim(pred, gt)}
                 lpips.score(pred, gt, values)
                 row["ground truth"] = _to_numpy(gt)
+                gt_mask = None
                 if group.gt_masks is not None:
                     gt_mask = _read_mask(group.gt_masks[i])
                     row["GT motion mask"] = gt_mask.float().numpy()
+                    values.update(region_psnr(pred, gt, gt_mask))
                     if mask is not None:
                         values["mask_iou"] = mask_iou(mask[..., 0].detach().cpu(), gt_mask, MASK_THRESHOLD)
                 ours.update(values)
-                edi = _score_reference(group.edi_images, i, gt.cpu(), edi_set)
-                blurry = _score_reference(group.blurry_images, i, gt.cpu(), blurry_set)
+                edi = _score_reference(group.edi_images, i, gt.cpu(), edi_set, gt_mask)
+                blurry = _score_reference(group.blurry_images, i, gt.cpu(), blurry_set, gt_mask)
             else:
                 edi = _read_rgb(group.edi_images[i]) if group.edi_images is not None else None
                 blurry = _read_rgb(group.blurry_images[i]) if group.blurry_images is not None else None

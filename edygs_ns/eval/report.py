@@ -24,6 +24,8 @@ from typing import Any, List, Mapping, Sequence, Tuple, Union
 COLUMNS: Tuple[Tuple[str, str, str], ...] = (
     ("psnr", "PSNR↑", ".2f"),
     ("ssim", "SSIM↑", ".4f"),
+    ("psnr_dynamic", "PSNR dyn↑", ".2f"),
+    ("psnr_static", "PSNR static↑", ".2f"),
     ("lpips_alex", "LPIPS(alex)↓", ".4f"),
     ("lpips_vgg", "LPIPS(vgg)↓", ".4f"),
     ("mask_iou", "mask IoU↑", ".4f"),
