@@ -76,6 +76,8 @@ class AblationBenchConfig:
     """synthetic scene height"""
     n_frames: int = 12
     """blurry frames per scene"""
+    motions: List[str] = field(default_factory=lambda: ["circular", "bouncing", "linear"])
+    """sphere motion of each scene: seed s gets motions[s % len(motions)] (circular, linear, bouncing)"""
     extra_train_args: str = ""
     """more ns-train arguments passed to every run, one quoted string (e.g. a smaller deformation
     MLP on CPU: "--pipeline.model.deformation.width 64")"""
@@ -89,15 +91,27 @@ def _device(name: str) -> str:
     return "cuda" if torch.cuda.is_available() else "cpu"
 
 
+def motion_of(cfg: AblationBenchConfig, seed: int) -> str:
+    """The sphere motion of scene ``seed``."""
+    return cfg.motions[seed % len(cfg.motions)]
+
+
 def make_scene(cfg: AblationBenchConfig, seed: int) -> Path:
-    """Raw capture + processed scene for ``seed`` (reused when already there)."""
+    """Raw capture + processed scene for ``seed`` (reused when already there, if its motion matches)."""
     root = cfg.out / f"seed{seed}"
     scene = root / "scene"
+    raw = root / "raw"
+    motion = motion_of(cfg, seed)
+    if (raw / "scene.json").exists():
+        written = json.loads((raw / "scene.json").read_text())["config"]["motion"]
+        if written != motion:
+            raise ValueError(f"{raw}: scene of seed {seed} has motion {written!r}, this run asks for {motion!r} "
+                             "(pass the --motions it was made with, or another --out)")
     if (scene / "transforms.json").exists():
         return scene
-    raw = root / "raw"
     if not (raw / "exposures.csv").exists():
-        write_synthetic_scene(SynthConfig(output_dir=raw, seed=seed, width=cfg.width, height=cfg.height, n_frames=cfg.n_frames, overwrite=True))
+        write_synthetic_scene(SynthConfig(output_dir=raw, seed=seed, width=cfg.width, height=cfg.height, n_frames=cfg.n_frames,
+                                          motion=motion, overwrite=True))  # type: ignore[arg-type]
     config = ProcessConfig(output=scene, poses=cfg.poses)  # type: ignore[arg-type]
     config.inputs.exposures = raw / "exposures.csv"
     config.inputs.events = raw / "events.h5"
@@ -190,6 +204,19 @@ def markdown(results: Dict[str, Any]) -> str:
     for label, values in refs.items():
         lines.append(f"| {label} (image itself) | {_fmt(values.get('psnr'), 2)} | {_fmt(values.get('ssim'), 4)} | "
                      f"{_fmt(values.get('psnr_dynamic'), 2)} | {_fmt(values.get('psnr_static'), 2)} | | | | | | | |")
+    seeds = sorted({(r["seed"], r.get("motion", "?")) for rows in results["rows"].values() for r in rows})
+    if len(seeds) > 1:
+        lines += ["", "Input-view PSNR per scene (mask IoU in brackets):", "",
+                  "| Variant | " + " | ".join(f"seed {s} ({m})" for s, m in seeds) + " |",
+                  "| --- |" + " --- |" * len(seeds)]
+        for label, rows in results["rows"].items():
+            by_seed = {r["seed"]: r for r in rows}
+            cells = []
+            for seed, _ in seeds:
+                r = by_seed.get(seed)
+                iou = "" if r is None or r.get("input_mask_iou") is None else f" ({r['input_mask_iou']:.2f})"
+                cells.append("-" if r is None else _fmt(r.get("input_psnr"), 2) + iou)
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -213,6 +240,7 @@ def main(cfg: AblationBenchConfig) -> Dict[str, Any]:
             metrics = evaluate_cached(config_path, label)
             row = row_of(metrics, label, seconds)
             row["seed"] = seed
+            row["motion"] = motion_of(cfg, seed)
             results["rows"][label].append(row)
             for ref_label in ("EDI latent", "blurry input"):
                 ref = metrics.get(ref_label, {}).get(INPUT_SPLIT)
