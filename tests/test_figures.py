@@ -130,7 +130,8 @@ def test_write_metrics_json_and_markdown(tmp_path):
     lines = md_path.read_text(encoding="utf-8").splitlines()
     table = [line for line in lines if line.startswith("|")]
     header = [cell.strip() for cell in table[0].strip("|").split("|")]
-    assert header == ["Method", "Split", "PSNR↑", "SSIM↑", "LPIPS(alex)↓", "LPIPS(vgg)↓", "mask IoU↑", "ATE↓", "RPE_t↓", "RPE_r↓"]
+    assert header == ["Method", "Split", "PSNR↑", "SSIM↑", "PSNR dyn↑", "PSNR static↑", "LPIPS(alex)↓", "LPIPS(vgg)↓",
+                      "mask IoU↑", "ATE↓", "RPE_t↓", "RPE_r↓"]  # fmt: skip
     rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in table[2:]]
     assert len(rows) == 3
     first = dict(zip(header, rows[0]))
@@ -141,6 +142,7 @@ def test_write_metrics_json_and_markdown(tmp_path):
     assert first["ATE↓"] == "0.0024"
     second = dict(zip(header, rows[1]))
     assert second["PSNR↑"] == "inf" and second["LPIPS(vgg)↓"] == "-" and second["mask IoU↑"] == "-"
+    assert first["PSNR dyn↑"] == "-"  # not measured: no region PSNR in these rows
     assert dict(zip(header, rows[2]))["Method"] == "blurry"
 
 
