@@ -25,6 +25,9 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.cameras.lie_groups import exp_map_SO3xR3
 from torch import Tensor
 
+from edygs_ns.eval.pose_alignment import with_poses
+from edygs_ns.model.edygs_model import adjust_poses
+
 #: Entries of the SE(3) correction: so(3) rotation (3) then translation (3).
 SE3_DOF = 6
 
@@ -40,9 +43,8 @@ class NovelPoseFitConfig:
 
 
 def _corrected(c2w: Tensor, delta: Tensor) -> Tensor:
-    """Apply a [1, 6] SE(3) correction to a [1, 3, 4] pose the way nerfstudio's camera optimiser does."""
-    adj = exp_map_SO3xR3(delta)  # [1, 3, 4]
-    return torch.cat([adj[:, :3, :3] @ c2w[:, :3, :3], c2w[:, :3, 3:] + adj[:, :3, 3:]], dim=-1)
+    """A [1, 3, 4] pose moved by the [1, 6] SE(3) correction `delta`."""
+    return adjust_poses(c2w, exp_map_SO3xR3(delta))
 
 
 def fit_camera_pose(model: Any, camera: Cameras, target: Tensor, config: NovelPoseFitConfig) -> Tuple[Cameras, float, float]:
@@ -70,7 +72,7 @@ def fit_camera_pose(model: Any, camera: Cameras, target: Tensor, config: NovelPo
         for step in range(config.steps + 1):
             for group in optimizer.param_groups:
                 group["lr"] = config.lr * 0.5 * (1.0 + math.cos(math.pi * step / max(config.steps, 1)))
-            trial = _with_pose(camera, _corrected(c2w0, delta))
+            trial = with_poses(camera, _corrected(c2w0, delta))
             rgb = model.render_cameras(trial)["rgb"][0]
             loss = (rgb - target).abs().mean()
             last = float(loss.detach())
@@ -85,16 +87,8 @@ def fit_camera_pose(model: Any, camera: Cameras, target: Tensor, config: NovelPo
         for p, flag in zip(params, was_grad):
             p.requires_grad_(flag)
     with torch.no_grad():
-        fitted = _with_pose(camera, _corrected(c2w0, delta.detach()))
+        fitted = with_poses(camera, _corrected(c2w0, delta.detach()))
     return fitted, first, last
-
-
-def _with_pose(camera: Cameras, c2w: Tensor) -> Cameras:
-    """The camera [1] with pose `c2w` [1, 3, 4] (may carry gradients)."""
-    return Cameras(
-        camera_to_worlds=c2w, fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy, width=camera.width,
-        height=camera.height, camera_type=camera.camera_type, times=camera.times, metadata=camera.metadata,
-    )
 
 
 __all__ = ["NovelPoseFitConfig", "fit_camera_pose"]

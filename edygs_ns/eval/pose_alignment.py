@@ -121,8 +121,14 @@ def fit_gt_to_model(gt_c2w: np.ndarray, model_c2w: np.ndarray) -> Tuple[Optional
 
 def with_poses(cameras: Cameras, c2w: Union[Tensor, np.ndarray]) -> Cameras:
     """Copy of `cameras` [N] with new camera-to-world poses ([N, 3, 4] or [N, 4, 4]); intrinsics,
-    times and size kept, metadata dropped (so the model applies no pose refinement to them)."""
-    poses = torch.as_tensor(to_homogeneous(c2w)[:, :POSE_ROWS, :], dtype=cameras.camera_to_worlds.dtype)
+    times and size kept, metadata dropped (so the model applies no pose refinement to them). A
+    tensor `c2w` keeps its autograd graph (test-time pose fitting renders through it)."""
+    if isinstance(c2w, Tensor):
+        if c2w.dim() != 3 or c2w.shape[1:] not in ((POSE_ROWS, HOMOGENEOUS_SIZE), (HOMOGENEOUS_SIZE, HOMOGENEOUS_SIZE)):
+            raise ValueError(f"with_poses: poses have shape {tuple(c2w.shape)}, expected [N, 3, 4] or [N, 4, 4]")
+        poses = c2w[:, :POSE_ROWS, :].to(cameras.camera_to_worlds.dtype)
+    else:
+        poses = torch.as_tensor(to_homogeneous(c2w)[:, :POSE_ROWS, :], dtype=cameras.camera_to_worlds.dtype)
     if poses.shape[0] != cameras.shape[0]:
         raise ValueError(f"with_poses: {poses.shape[0]} poses for {cameras.shape[0]} cameras")
     return Cameras(

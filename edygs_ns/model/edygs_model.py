@@ -313,8 +313,7 @@ class EdygsModel(SplatExportView):
         indices = self.camera_indices(camera)
         if not self.training or indices is None or self.config.camera_optimizer.mode == "off" or not self.config.optimize_poses:
             return c2w
-        adj = self.camera_optimizer(indices).to(c2w.device)
-        return torch.cat([torch.bmm(adj[:, :3, :3], c2w[:, :3, :3]), c2w[:, :3, 3:] + adj[:, :3, 3:]], dim=-1)
+        return adjust_poses(c2w, self.camera_optimizer(indices).to(c2w.device))
 
     def deformed_gaussians(self, time: float, deform: bool) -> Dict[str, Tensor]:
         """Activated Gaussians at ``time``: means [N,3], quats [N,4], scales [N,3], opacities [N],
@@ -466,6 +465,12 @@ class EdygsModel(SplatExportView):
             metrics["mask_iou"] = float(mask_iou(outputs["mask"][..., 0], batch["motion_mask"].to(self.device)[..., 0] > 0.5))
         images = {"img": torch.cat([gt, pred], dim=1), "mask": outputs["mask"].repeat(1, 1, 3)}
         return metrics, images
+
+
+def adjust_poses(c2w: Tensor, adj: Tensor) -> Tensor:
+    """Apply SE(3) corrections [C, 3, 4] to poses [C, 3, 4] as nerfstudio's camera optimiser
+    does: rotation R' = R_adj R, centre t' = t + t_adj."""
+    return torch.cat([torch.bmm(adj[:, :3, :3], c2w[:, :3, :3]), c2w[:, :3, 3:] + adj[:, :3, 3:]], dim=-1)
 
 
 def c2w_opencv(c2w: Tensor) -> Tensor:

@@ -772,14 +772,21 @@ def load_capture(config: InputConfig, k: int, want_given_poses: bool) -> Capture
     return capture
 
 
-def _attach_calibration(capture: Capture, config: InputConfig) -> None:
-    """Set capture.calibration from --intrinsics, camera.json beside an exposure table, or the
-    intrinsics an E2NeRF / EvDeblurNeRF scene carries."""
-    path: Optional[Path] = None
+def calibration_path(config: InputConfig) -> Optional[Path]:
+    """The calibration file of the input: --intrinsics, else camera.json beside an exposure table."""
     if config.intrinsics is not None:
-        path = Path(config.intrinsics)
-    elif config.exposures is not None and (Path(config.exposures).resolve().parent / CALIBRATION_NAME).is_file():
-        path = Path(config.exposures).resolve().parent / CALIBRATION_NAME
+        return Path(config.intrinsics)
+    if config.exposures is not None:
+        beside = Path(config.exposures).resolve().parent / CALIBRATION_NAME
+        if beside.is_file():
+            return beside
+    return None
+
+
+def _attach_calibration(capture: Capture, config: InputConfig) -> None:
+    """Set capture.calibration from calibration_path(config), or the intrinsics an E2NeRF /
+    EvDeblurNeRF scene carries."""
+    path = calibration_path(config)
     if path is not None:
         capture.calibration = read_calibration(path, (capture.height, capture.width))
         capture.calibration_source = str(path)

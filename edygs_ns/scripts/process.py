@@ -40,7 +40,7 @@ from edygs_ns.events.edi import EdiConfig, edi_from_frame
 from edygs_ns.events.exposures import Exposure, read_exposures
 from edygs_ns.preprocess.colmap import ColmapConfig, ColmapResult, registration_message, run_colmap, with_calibration
 from edygs_ns.data.layouts.common import Intrinsics
-from edygs_ns.preprocess.inputs import CALIBRATION_NAME, Capture, InputConfig, load_capture, read_image
+from edygs_ns.preprocess.inputs import Capture, InputConfig, calibration_path, load_capture, read_image
 from edygs_ns.preprocess.steps import StepRunner, file_signature, fingerprint, progress_bar
 from edygs_ns.preprocess.writer import (
     REPORT_NAME,
@@ -132,10 +132,9 @@ def _input_signature(config: InputConfig) -> List[Dict[str, Any]]:
         paths += _evdeblurnerf_files(Path(config.evdeblurnerf))
     if config.given_poses is not None:
         paths.append(Path(config.given_poses))
-    if config.intrinsics is not None:
-        paths.append(Path(config.intrinsics))
-    elif config.exposures is not None and (Path(config.exposures).resolve().parent / CALIBRATION_NAME).is_file():
-        paths.append(Path(config.exposures).resolve().parent / CALIBRATION_NAME)
+    calibration = calibration_path(config)
+    if calibration is not None:
+        paths.append(calibration)
     return [file_signature(p) for p in paths]
 
 
