@@ -51,7 +51,7 @@ def test_evidence_rejects_bad_shapes():
 
 
 def test_seeds_project_back_onto_their_pixels_in_front_of_the_surface():
-    cfg = DynamicSeedingConfig(depth_scale=0.9)
+    cfg = DynamicSeedingConfig(depth_scale=0.9, seed_shape="flat")
     K = torch.tensor([[50.0, 0.0, W / 2], [0.0, 50.0, H / 2], [0.0, 0.0, 1.0]])
     angle = 0.3
     c2w = torch.eye(4)
@@ -61,7 +61,7 @@ def test_seeds_project_back_onto_their_pixels_in_front_of_the_surface():
     evidence[20:25, 30:36] = 1.0
     depth = torch.full((H, W), 4.0)
     rgb = torch.rand(H, W, 3, generator=torch.Generator().manual_seed(1))
-    points, colors, radii = seed_gaussians(evidence, depth, rgb, K, c2w, cfg)
+    points, colors, radii, _ = seed_gaussians(evidence, depth, rgb, K, c2w, cfg)
     assert points.shape == (30, 3) and colors.shape == (30, 3) and radii.shape == (30,)
     cam = (points - c2w[:3, 3]) @ c2w[:3, :3]  # world -> camera (OpenCV)
     assert torch.allclose(cam[:, 2], torch.full((30,), 3.6), atol=1e-5)
@@ -73,6 +73,34 @@ def test_seeds_project_back_onto_their_pixels_in_front_of_the_surface():
     assert torch.allclose(radii, torch.full((30,), cfg.scale_pixels * 3.6 / 50.0))
     few = seed_gaussians(evidence, depth, rgb, K, c2w, DynamicSeedingConfig(max_seeds=7))[0]
     assert few.shape == (7, 3)
+
+
+def test_cap_seeds_lie_on_a_sphere_of_the_blob_radius_and_project_onto_their_pixels():
+    K = torch.tensor([[60.0, 0.0, W / 2], [0.0, 60.0, H / 2], [0.0, 0.0, 1.0]])
+    c2w = torch.eye(4)
+    c2w[:3, 3] = torch.tensor([0.5, 0.0, -1.0])
+    vv, uu = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    evidence = (((vv - 24.0) ** 2 + (uu - 30.0) ** 2) <= 8.0**2).float()  # round blob, radius ~8 px
+    depth = torch.full((H, W), 5.0)
+    cfg = DynamicSeedingConfig(depth_scale=0.8, seed_shape="cap")
+    seeds = seed_gaussians(evidence, depth, torch.rand(H, W, 3), K, c2w, cfg)
+    count = int(evidence.sum())
+    assert seeds.points.shape == (count, 3)
+    z_centre = 0.8 * 5.0
+    radius = math.sqrt(count / math.pi) * z_centre / 60.0
+    # the centre sits on the blob's mean pixel at the centre depth, the seeds on the near half-sphere
+    cam_centre = seeds.centre - c2w[:3, 3]
+    assert abs(float(cam_centre[2]) - z_centre) < 1e-5
+    assert abs(float(cam_centre[0] / cam_centre[2] * 60.0 + W / 2 - 0.5) - 30.0) < 1e-4
+    cam = seeds.points - c2w[:3, 3]
+    assert float(cam[:, 2].min()) == pytest.approx(z_centre - radius, rel=0.02)
+    assert float(cam[:, 2].max()) <= z_centre + 1e-5
+    inner = (seeds.points - seeds.centre).norm(dim=-1) <= radius * 1.05
+    assert inner.float().mean() > 0.95
+    u = cam[:, 0] / cam[:, 2] * 60.0 + W / 2 - 0.5
+    assert torch.allclose(u, u.round(), atol=1e-3)
+    # a nearer cap gives smaller seeds: radii follow the seed's own depth
+    assert torch.allclose(seeds.radii, cfg.scale_pixels * cam[:, 2] / 60.0, atol=1e-6)
 
 
 def test_append_keeps_optimizer_and_densification_state_aligned():

@@ -74,6 +74,10 @@ def test_phases_decide_what_trains(tiny_scene, tmp_path):
     for name, param in model.gauss_params.items():
         opt = trainer.optimizers.optimizers[name]
         assert opt.param_groups[0]["params"][0] is param and param.shape[0] == model.num_points
+    # the seeds were tracked as a rigid body: the track is the deformation's base motion and trains
+    assert model.rigid_motion.active and all(p.requires_grad for p in model.rigid_motion.parameters())
+    assert trainer.optimizers.optimizers["rigid_motion"].param_groups[0]["params"][0] is model.rigid_motion.rotvecs
+    assert torch.equal(model.rigid_motion.times, torch.sort(dm.train_dataset.cameras.times.reshape(-1)).values)
     half = model.config.schedule.dynamic_window_start
     assert dm.time_window == pytest.approx((0.5 - half, 0.5 + half))
 
@@ -100,7 +104,10 @@ def test_training_lowers_the_loss_and_resumes_exactly(tiny_scene, tmp_path):
     for name, param in old.gauss_params.items():
         assert torch.equal(param.detach(), new.gauss_params[name].detach()), name
     assert torch.equal(old.static_masks, new.static_masks) and new.static_masks.numel() > 0
-    for group in ("means", "mask_logit", "deformation"):
+    assert old.rigid_motion.active
+    for name, value in old.rigid_motion.state_dict().items():
+        assert torch.equal(value, new.rigid_motion.state_dict()[name]), name
+    for group in ("means", "mask_logit", "deformation", "rigid_motion"):
         old_state = trainer.optimizers.optimizers[group].state_dict()["state"]
         new_state = resumed.optimizers.optimizers[group].state_dict()["state"]
         assert old_state.keys() == new_state.keys()

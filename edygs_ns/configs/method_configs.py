@@ -46,6 +46,7 @@ def optimizer_configs(max_steps: int = MAX_ITERATIONS) -> dict:
         "quats": _adam(0.001),
         "mask_logit": _adam(0.005),
         "deformation": _adam(8e-4, 1.6e-6, max_steps),
+        "rigid_motion": _adam(1e-3),
         "camera_opt": _adam(1e-4, 1e-6, max_steps),
     }
 

@@ -80,3 +80,115 @@ class DeformationField(nn.Module):
                 h = torch.cat([h, encoded], dim=-1)
             h = torch.relu(layer(h))
         return self.head_xyz(h), self.head_rot(h), self.head_scale(h)
+
+
+def quat_from_rotvec(rotvec: Float[Tensor, "3"]) -> Float[Tensor, "4"]:
+    """Unit quaternion (w, x, y, z) of an axis-angle vector (radians); differentiable at zero."""
+    angle = (rotvec.square().sum() + 1e-24).sqrt()
+    half = angle / 2
+    return torch.cat([torch.cos(half)[None], torch.sin(half) / angle * rotvec])
+
+
+def quat_multiply(a: Float[Tensor, "4"], b: Float[Tensor, "N 4"]) -> Float[Tensor, "N 4"]:
+    """Hamilton product a ⊗ b (w, x, y, z) of one quaternion with N quaternions."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        dim=-1,
+    )
+
+
+class RigidMotion(nn.Module):
+    """The tracked rigid motion of the dynamic object (``rigid_track.py``), a base under the MLP.
+
+    Gaussians deformed at time t whose canonical centre lies within ``reach`` of ``centre`` move by
+    x -> R(t) (x - c) + c + τ(t) and turn by R(t); the MLP adds its residual on top. R(t) = exp(ω(t)),
+    τ(t) = size · shift(t) are linear interpolations of one (ω, shift) per training latent at the
+    sorted latent ``times``, held at the ends. ω (radians) and shift (object sizes) are parameters:
+    the tracker sets them at the dynamic switch and the dynamic phase refines them with the
+    photometric losses. Until set (or with tracking off) there is no motion. Everything travels
+    with the checkpoint, so rendering reproduces it.
+    """
+
+    def __init__(self, count: int) -> None:
+        super().__init__()
+        self.rotvecs = nn.Parameter(torch.zeros(count, 3))
+        self.shifts = nn.Parameter(torch.zeros(count, 3))
+        self.register_buffer("centre", torch.zeros(3))
+        self.register_buffer("reach", torch.zeros(()))
+        self.register_buffer("size", torch.ones(()))
+        self.register_buffer("times", torch.zeros(count))
+
+    @property
+    def active(self) -> bool:
+        return self.times.numel() > 0 and float(self.reach) > 0
+
+    @property
+    def translations(self) -> Tensor:
+        """[count, 3] world units."""
+        return self.shifts * self.size
+
+    @torch.no_grad()
+    def set(self, centre: Tensor, reach: float, size: float, times: Tensor, rotvecs: Tensor, translations: Tensor) -> None:
+        """Store a track of one rotation vector and translation per training latent (any order of
+        ``times``; sorted here); ``size`` (world units) is the unit of the trained shifts."""
+        if times.shape[0] != self.times.shape[0]:
+            raise ValueError(f"RigidMotion.set: {times.shape[0]} track times for {self.times.shape[0]} training latents")
+        if size <= 0 or reach <= 0:
+            raise ValueError(f"RigidMotion.set: size and reach must be positive, got {size}, {reach}")
+        order = torch.argsort(times)
+        self.centre.copy_(centre)
+        self.reach.fill_(float(reach))
+        self.size.fill_(float(size))
+        self.times.copy_(times[order])
+        self.rotvecs.copy_(rotvecs[order])
+        self.shifts.copy_(translations[order] / size)
+
+    def prepare_load(self, state_dict: dict, prefix: str) -> None:
+        """Before ``load_state_dict``: a checkpoint from before the rigid motion existed gets the
+        empty (motionless) one."""
+        for name, value in self.state_dict().items():
+            state_dict.setdefault(prefix + name, value)
+
+    def at(self, time: float) -> Tuple[Tensor, Tensor]:
+        """Interpolated rotation vector [3] and translation [3] at ``time``."""
+        count = self.times.shape[0]
+        t = min(max(float(time), float(self.times[0])), float(self.times[-1]))
+        hi = int(torch.searchsorted(self.times, torch.tensor(t, device=self.times.device)).clamp(1, count - 1)) if count > 1 else 0
+        lo = max(hi - 1, 0)
+        span = float(self.times[hi] - self.times[lo])
+        w = (t - float(self.times[lo])) / span if span > 0 else 0.0
+        translations = self.translations
+        return torch.lerp(self.rotvecs[lo], self.rotvecs[hi], w), torch.lerp(translations[lo], translations[hi], w)
+
+    def forward(
+        self, means: Float[Tensor, "N 3"], quats: Float[Tensor, "N 4"], time: float
+    ) -> Tuple[Float[Tensor, "N 3"], Float[Tensor, "N 4"]]:
+        """Offsets (Δμ, Δq) of the rigid motion at ``time`` (zero outside the reach or when empty)."""
+        if not self.active:
+            return torch.zeros_like(means), torch.zeros_like(quats)
+        rotvec, translation = self.at(time)
+        means = means.detach()
+        inside = ((means - self.centre).norm(dim=-1) <= self.reach)[:, None].to(means.dtype)
+        quat = quat_from_rotvec(rotvec)
+        moved = (means - self.centre) @ quat_to_matrix(quat).T + self.centre + translation
+        turned = quat_multiply(quat, quats)
+        return inside * (moved - means), inside * (turned - quats)
+
+
+def quat_to_matrix(q: Float[Tensor, "4"]) -> Float[Tensor, "3 3"]:
+    """Rotation matrix of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = q
+    return torch.stack(
+        [
+            torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)]),
+            torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)]),
+            torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]),
+        ]
+    )

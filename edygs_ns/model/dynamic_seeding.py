@@ -14,19 +14,23 @@ moved. Two things are derived from that, once:
    ``reference_time``) are back-projected a little in front of the static depth and become new
    Gaussians with the EDI colour and a high motion mask; the deformation field then carries them
    through time.
-3. **Motion initialisation**: the evidence blob of every latent gives a 3D track point (its
-   centroid back-projected at the blob's static depth, as for the seeds); the deformation field
-   is first regressed, for the seeds, onto the rigid offsets track(t) − track(t_ref) (a few
-   hundred MLP-only steps, no rendering), so the photometric, event and mask losses refine a
-   motion that already overlaps the object instead of having to discover a displacement larger
-   than the object from zero offsets. Optionally the dynamic phase also starts on latents near the
-   reference time (``training/schedule.py``'s time window).
+3. **Motion initialisation**: by default the seeds are tracked as one rigid body through every
+   latent by photometric alignment (``rigid_track.py``): the track, which turns as well as moves,
+   becomes the deformation's base motion (the MLP learns a residual from zero) and places coverage
+   seeds for the parts of the object that turn into view. Without it (``--pipeline.model.rigid-track.enabled
+   False``) the evidence blob of every latent gives a 3D track point (its centroid back-projected
+   at the blob's static depth, as for the seeds) and the deformation field is first regressed,
+   for the seeds, onto the offsets track(t) − track(t_ref) (a few hundred MLP-only steps, no
+   rendering), so the photometric, event and mask losses refine a motion that already overlaps the
+   object instead of having to discover a displacement larger than the object from zero offsets.
+   Optionally the dynamic phase also starts on latents near the reference time
+   (``training/schedule.py``'s time window).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import List, Literal, Optional, Tuple
+from typing import List, Literal, NamedTuple, Optional, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -63,6 +67,17 @@ class DynamicSeedingConfig:
     """at most this many seeds (evenly subsampled)"""
     depth_scale: float = 0.9
     """seeds sit at this fraction of the static render's depth (in front of the surface behind)"""
+    seed_shape: Literal["cap", "flat"] = "cap"
+    """cap: the seeds form a round cap bulging towards the camera by the blob's radius, centred at
+    the blob's median static depth times ``depth_scale`` (a compact object is closer to round than
+    to a card, and a turning card cannot show its far side); flat: every seed at its own pixel's
+    static depth times ``depth_scale``"""
+    coverage_times: Tuple[float, ...] = (0.0, 1.0)
+    """normalised times of extra latents whose evidence pixels, taken back to the canonical frame
+    by the rigid track (model/rigid_track.py), seed the parts of the object the reference latent did
+    not see (empty: none; needs the rigid track)"""
+    coverage_spacing: float = 1.5
+    """a coverage seed is kept only if it is farther than this many seed radii from every seed"""
     seed_opacity: float = 0.5
     """opacity of a seed"""
     seed_mask: float = 0.9
@@ -111,6 +126,16 @@ def motion_evidence(
     return (filtered > threshold).float(), threshold
 
 
+class Seeds(NamedTuple):
+    """Dynamic seeds: points [S, 3] world units, colours [S, 3] in [0, 1], radii [S] world units,
+    and the centre [3] of the blob they came from (at the cap's centre depth)."""
+
+    points: Tensor
+    colors: Tensor
+    radii: Tensor
+    centre: Tensor
+
+
 def seed_gaussians(
     evidence: Float[Tensor, "H W"],
     depth: Float[Tensor, "H W"],
@@ -118,7 +143,8 @@ def seed_gaussians(
     K: Float[Tensor, "3 3"],
     cam_to_world_cv: Float[Tensor, "4 4"],
     config: DynamicSeedingConfig,
-) -> Tuple[Float[Tensor, "S 3"], Float[Tensor, "S 3"], Float[Tensor, "S"]]:
+    centre_depth: Optional[float] = None,
+) -> Seeds:
     """Back-project evidence pixels of one latent.
 
     Args:
@@ -127,22 +153,35 @@ def seed_gaussians(
         rgb: colours in [0, 1] (the EDI latent).
         K: pinhole intrinsics in pixels.
         cam_to_world_cv: camera-to-world with OpenCV axes (x right, y down, z forward).
-
-    Returns:
-        points [S, 3] world positions, colours [S, 3], radii [S] world units.
+        centre_depth: camera depth of the blob's centre (cap shape); default: the blob's median
+            static depth times ``depth_scale``.
     """
     stride = max(1, config.pixel_stride)
+    inside = (evidence > 0.5) & (depth > 0) & torch.isfinite(depth)
     keep = torch.zeros_like(evidence, dtype=torch.bool)
     keep[::stride, ::stride] = True
-    keep &= (evidence > 0.5) & (depth > 0) & torch.isfinite(depth)
+    keep &= inside
     v, u = torch.nonzero(keep, as_tuple=True)
     if len(v) > config.max_seeds:
         pick = torch.linspace(0, len(v) - 1, config.max_seeds, device=v.device).round().long()
         v, u = v[pick], u[pick]
-    z = depth[v, u] * config.depth_scale
+    blob_v, blob_u = torch.nonzero(inside, as_tuple=True)
+    if len(blob_v) == 0:
+        empty = depth.new_zeros(0, 3)
+        return Seeds(empty, empty.clone(), depth.new_zeros(0), depth.new_zeros(3))
+    centre_u, centre_v = blob_u.to(depth.dtype).mean(), blob_v.to(depth.dtype).mean()
+    z_centre = depth[blob_v, blob_u].median() * config.depth_scale if centre_depth is None else depth.new_tensor(centre_depth)
+    if config.seed_shape == "cap":
+        radius_px = (len(blob_v) / torch.pi) ** 0.5
+        radius = radius_px * z_centre / K[0, 0]
+        rho = torch.hypot(u.to(depth.dtype) - centre_u, v.to(depth.dtype) - centre_v) / radius_px
+        z = z_centre - radius * (1.0 - rho.square()).clamp_min(0.0).sqrt()
+    else:
+        z = depth[v, u] * config.depth_scale
     points = backproject(u, v, z, K, cam_to_world_cv)
     radii = config.scale_pixels * stride * z / K[0, 0]
-    return points, rgb[v, u].clamp(0.0, 1.0), radii
+    centre = backproject(centre_u[None], centre_v[None], z_centre[None], K, cam_to_world_cv)[0]
+    return Seeds(points, rgb[v, u].clamp(0.0, 1.0), radii, centre)
 
 
 def backproject(u: Tensor, v: Tensor, z: Tensor, K: Tensor, cam_to_world_cv: Tensor) -> Tensor:
@@ -187,12 +226,17 @@ def fit_motion(
     deformation: torch.nn.Module,
     seeds: Float[Tensor, "S 3"],
     times: Float[Tensor, "T"],
-    offsets: Float[Tensor, "T 3"],
+    offsets: Tensor,
     config: DynamicSeedingConfig,
     generator: Optional[torch.Generator] = None,
 ) -> List[float]:
-    """Regress ``deformation(seeds, t)`` onto the rigid offsets (Δμ = offsets[t], Δq = Δs = 0) with a
-    private Adam (the training optimizer's moments are left alone); returns the loss per step."""
+    """Regress ``deformation(seeds, t)`` onto the offsets (Δμ = offsets, Δq = Δs = 0) with a private
+    Adam (the training optimizer's moments are left alone); returns the loss per step.
+
+    Args:
+        offsets: [T, 3] one offset per time for every seed (a translation track) or [T, S, 3] one
+            per time and seed (a rigid track with rotation).
+    """
     if len(seeds) == 0 or len(times) == 0 or config.init_motion_steps <= 0:
         return []
     params = [p for p in deformation.parameters()]
@@ -207,7 +251,8 @@ def fit_motion(
             for j in pick_t.tolist():
                 rows = torch.randint(len(seeds), (min(per_time, len(seeds)),), generator=generator).to(seeds.device)
                 d_xyz, d_rot, d_scale = deformation(seeds[rows], float(times[j]))
-                loss = loss + (d_xyz - offsets[j]).square().sum(-1).mean() + d_rot.square().sum(-1).mean() + d_scale.square().sum(-1).mean()
+                target = offsets[j] if offsets.dim() == 2 else offsets[j, rows]
+                loss = loss + (d_xyz - target).square().sum(-1).mean() + d_rot.square().sum(-1).mean() + d_scale.square().sum(-1).mean()
             loss = loss / len(pick_t)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()

@@ -25,8 +25,9 @@ from edygs_ns.losses.events import DEFAULT_LOG_EPS, event_loss
 from edygs_ns.losses.photometric import l1_dssim
 from edygs_ns.losses.regularizers import mask_consistency, mask_l1, motion_loss
 from edygs_ns.model.appearance import MAX_SH_DEGREE, sh_to_rgb
-from edygs_ns.model.deformation import DeformationConfig, DeformationField
+from edygs_ns.model.deformation import DeformationConfig, DeformationField, RigidMotion
 from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig, evidence_track, fit_motion, motion_evidence, seed_gaussians
+from edygs_ns.model.rigid_track import RigidTrackConfig, coverage_seeds, track_rigid
 from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES, init_gaussians, seed_tensors
 from edygs_ns.model.splat_export_view import SplatExportView
 from edygs_ns.model.strategy import DensifyConfig, append_gaussians, make_strategy, strategy_info
@@ -35,6 +36,7 @@ from edygs_ns.training.schedule import (
     CAMERA_GROUP,
     DEFORMATION_GROUP,
     MASK_GROUP,
+    RIGID_GROUP,
     Phase,
     PhaseSchedule,
     is_active,
@@ -62,6 +64,8 @@ class EdygsModelConfig(ModelConfig):
     """densification / pruning rules (3DGS)"""
     seeding: DynamicSeedingConfig = field(default_factory=DynamicSeedingConfig)
     """motion evidence and dynamic seeds at the static -> dynamic switch"""
+    rigid_track: RigidTrackConfig = field(default_factory=RigidTrackConfig)
+    """photometric rigid tracking of the dynamic seeds (the motion initialisation's target)"""
     camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="SO3xR3"))
     """per-latent-frame pose refinement (nerfstudio's camera optimiser)"""
     rasterizer: Literal["auto", "torch", "gsplat"] = "auto"
@@ -154,6 +158,7 @@ class EdygsModel(SplatExportView):
             points, colors, self.config.sh_degree, self.config.init_opacity, self.config.init_mask
         )
         self.deformation = DeformationField(self.config.deformation)
+        self.rigid_motion = RigidMotion(self.num_train_data)  # set from the rigid track at the dynamic switch
         camera_config = self.config.camera_optimizer
         if not self.config.optimize_poses:
             camera_config = CameraOptimizerConfig(mode="off")
@@ -180,6 +185,7 @@ class EdygsModel(SplatExportView):
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         groups = {name: [self.gauss_params[name]] for name in GAUSSIAN_ATTRIBUTES}
         groups[DEFORMATION_GROUP] = list(self.deformation.parameters())
+        groups[RIGID_GROUP] = list(self.rigid_motion.parameters())
         self.camera_optimizer.get_param_groups(param_groups=groups)
         return groups
 
@@ -191,6 +197,7 @@ class EdygsModel(SplatExportView):
             if key in state_dict:
                 param = self.gauss_params[name]
                 param.data = torch.zeros(state_dict[key].shape, dtype=param.dtype, device=param.device)
+        self.rigid_motion.prepare_load(state_dict, "rigid_motion.")
         if "static_masks" in state_dict:
             self.static_masks = torch.zeros_like(state_dict["static_masks"], device=self.static_masks.device)
         return super().load_state_dict(state_dict, strict=strict)
@@ -237,8 +244,9 @@ class EdygsModel(SplatExportView):
             MASK_GROUP: self.config.use_motion_mask,
             CAMERA_GROUP: self.config.optimize_poses,
             DEFORMATION_GROUP: self.config.use_deformation,
+            RIGID_GROUP: self.config.use_deformation,
         }
-        groups = list(GAUSSIAN_ATTRIBUTES) + [DEFORMATION_GROUP, CAMERA_GROUP]
+        groups = list(GAUSSIAN_ATTRIBUTES) + [DEFORMATION_GROUP, RIGID_GROUP, CAMERA_GROUP]
         return {g: is_trainable(g, phase) and switches.get(g, True) for g in groups}
 
     def apply_phase(self, phase: Phase) -> None:
@@ -248,6 +256,8 @@ class EdygsModel(SplatExportView):
             self.gauss_params[name].requires_grad_(flags[name])
         for p in self.deformation.parameters():
             p.requires_grad_(flags[DEFORMATION_GROUP])
+        for p in self.rigid_motion.parameters():
+            p.requires_grad_(flags[RIGID_GROUP])
         for p in self.camera_optimizer.parameters():
             p.requires_grad_(flags[CAMERA_GROUP])
 
@@ -260,7 +270,7 @@ class EdygsModel(SplatExportView):
             return
         cameras = self._train_cameras.to(self.device)
         use_evidence = self.seeding_active and self._train_image is not None
-        masks, residuals, depths, cams_to_world = [], [], [], []
+        masks, statics, residuals, depths, cams_to_world = [], [], [], [], []
         for i in range(cameras.shape[0]):
             camera = cameras[i : i + 1]
             camera.metadata = {"cam_idx": i}
@@ -268,9 +278,10 @@ class EdygsModel(SplatExportView):
             masks.append(out["mask"][0, ..., 0])
             if use_evidence:
                 image = self._train_image(i)[..., :3].to(self.device)
+                statics.append(out["rgb"][0])
                 residuals.append((out["rgb"][0] - image).abs().mean(dim=-1))
                 depths.append(torch.where(out["accumulation"][0, ..., 0] > 0.5, out["depth"][0, ..., 0], torch.zeros_like(masks[-1])))
-                cams_to_world.append(c2w_opencv(self.camera_to_worlds(camera))[0])
+                cams_to_world.append(self.camera_to_worlds(camera)[0])
         rendered = torch.stack(masks)
         message = f"[edygs] dynamic phase from step {self.step}: {len(masks)} mask-consistency targets"
         if not use_evidence:
@@ -281,23 +292,51 @@ class EdygsModel(SplatExportView):
         evidence, threshold = motion_evidence(torch.stack(residuals), cfg)
         targets = {"evidence": evidence, "rendered": rendered, "max": torch.maximum(rendered, evidence)}
         self.static_masks = targets[cfg.consistency_target].half()
-        depth, c2w_cv = torch.stack(depths), torch.stack(cams_to_world)
+        depth, c2w_cv = torch.stack(depths), c2w_opencv(torch.stack(cams_to_world))
         Ks = cameras.get_intrinsics_matrices().to(self.device)
         times = cameras.times.reshape(-1).to(self.device) if cameras.times is not None else torch.zeros(cameras.shape[0], device=self.device)
         ref = int(torch.argmin((times - cfg.reference_time).abs()))
-        points, colors, radii = seed_gaussians(evidence[ref], depth[ref], self._train_image(ref)[..., :3].to(self.device), Ks[ref], c2w_cv[ref], cfg)
-        new = seed_tensors(points, colors, radii, self.config.sh_degree, cfg.seed_opacity, cfg.seed_mask)
-        added = append_gaussians(self.gauss_params, self.optimizers, self.strategy_state, new)
-        track_idx, track = evidence_track(evidence, depth, Ks, c2w_cv, cfg)
+        image = lambda i: self._train_image(i)[..., :3].to(self.device)  # noqa: E731
+        seeds = seed_gaussians(evidence[ref], depth[ref], image(ref), Ks[ref], c2w_cv[ref], cfg)
+        points, colors, radii = seeds.points, seeds.colors, seeds.radii
         message += (
             f" ({cfg.consistency_target}); motion evidence on {100.0 * float(evidence.mean()):.1f}% of pixels"
-            f" (residual > {threshold:.3f}), {added} dynamic seeds"
+            f" (residual > {threshold:.3f}), {len(points)} dynamic seeds"
         )
-        if added and ref in track_idx.tolist():
-            anchor = track[track_idx.tolist().index(ref)]
-            losses = fit_motion(self.deformation, points, times[track_idx.to(times.device)], track.to(points) - anchor, cfg)
+        offsets: Optional[Tensor] = None
+        if len(points) and self.config.rigid_track.enabled:
+            track = track_rigid(
+                points, colors, radii, seeds.centre, times, evidence, image, torch.stack(statics),
+                viewmats_from_c2w(torch.stack(cams_to_world)), Ks, ref, select_backend(self.device, self.config.rasterizer),
+                self.config.rigid_track,
+            )
+            extra = coverage_seeds(track, points, radii, evidence, depth, image, Ks, c2w_cv, times, ref, cfg)
+            points, colors, radii = (torch.cat([a, b]) for a, b in ((points, extra.points), (colors, extra.colors), (radii, extra.radii)))
+            if self.config.rigid_track.as_base_motion:
+                distances = (points - track.centre).norm(dim=-1)
+                reach = self.config.rigid_track.reach * float(distances.max())
+                self.rigid_motion.set(track.centre, reach, float(distances.mean()), times, track.rotvecs, track.translations)
+                message += "; rigid base motion on"
+            else:
+                offsets = track.apply(points) - points
+            turn = float(track.rotvecs.norm(dim=-1).max())
+            message += (
+                f" + {len(extra.points)} coverage seeds; rigid track on {len(times)} latents"
+                f" (turns up to {turn * 180.0 / torch.pi:.0f}°, L1 {float(track.loss.mean()):.4f})"
+            )
+            fit_times = times
+        else:
+            track_idx, track_points = evidence_track(evidence, depth, Ks, c2w_cv, cfg)
+            if ref in track_idx.tolist():
+                offsets = track_points.to(points) - track_points[track_idx.tolist().index(ref)].to(points)
+                fit_times = times[track_idx.to(times.device)]
+                message += f"; translation track on {len(track_idx)} latents"
+        new = seed_tensors(points, colors, radii, self.config.sh_degree, cfg.seed_opacity, cfg.seed_mask)
+        added = append_gaussians(self.gauss_params, self.optimizers, self.strategy_state, new)
+        if added and offsets is not None:
+            losses = fit_motion(self.deformation, points, fit_times, offsets, cfg)
             if losses:
-                message += f", motion initialised on a {len(track_idx)}-latent track (fit loss {losses[0]:.4f} -> {losses[-1]:.4f})"
+                message += f", motion initialised (fit loss {losses[0]:.4f} -> {losses[-1]:.4f})"
         CONSOLE.log(message)
 
     # ------------------------------------------------------------ rendering
@@ -333,6 +372,9 @@ class EdygsModel(SplatExportView):
         else:
             subset = torch.arange(self.num_points, device=means.device)
         d_xyz, d_rot, d_scale = self.deformation(means[subset], time)
+        if self.rigid_motion.active:
+            rigid_xyz, rigid_rot = self.rigid_motion(means[subset], quats[subset], time)
+            d_xyz, d_rot = d_xyz + rigid_xyz, d_rot + rigid_rot
         out["means"] = means.index_add(0, subset, d_xyz)
         out["quats"] = quats.index_add(0, subset, d_rot)
         out["scales"] = scales.index_add(0, subset, d_scale).clamp_min(MIN_DEFORMED_SCALE)

@@ -27,11 +27,12 @@ GAUSSIAN_GROUPS: FrozenSet[str] = frozenset({"means", "scales", "quats", "featur
 MASK_GROUP = "mask_logit"
 CAMERA_GROUP = "camera_opt"
 DEFORMATION_GROUP = "deformation"
+RIGID_GROUP = "rigid_motion"
 
 TRAINABLE: Dict[Phase, FrozenSet[str]] = {
     Phase.POSE_INIT: GAUSSIAN_GROUPS,
     Phase.STATIC: GAUSSIAN_GROUPS | {MASK_GROUP, CAMERA_GROUP},
-    Phase.DYNAMIC: GAUSSIAN_GROUPS | {MASK_GROUP, CAMERA_GROUP, DEFORMATION_GROUP},
+    Phase.DYNAMIC: GAUSSIAN_GROUPS | {MASK_GROUP, CAMERA_GROUP, DEFORMATION_GROUP, RIGID_GROUP},
 }
 
 #: loss terms that are active in each phase (their weights live in the model config).

@@ -1,0 +1,161 @@
+"""Photometric rigid tracking of the dynamic seeds and the coverage seeds it places."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig
+from edygs_ns.model.rigid_track import (
+    RigidTrack, RigidTrackConfig, coverage_seeds, rigid_apply, rotation_matrices, track_rigid, visiting_order,
+)
+from edygs_ns.render.torch_backend import rasterize_torch
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+H, W, F = 48, 64, 60.0
+CENTRE = torch.tensor([0.0, 0.0, 3.0])
+RADIUS = 0.5
+AXIS = torch.tensor([0.0, 1.0, 0.0])
+SPIN = 0.12  # radians per latent
+SHIFT = torch.tensor([0.03, 0.01, 0.0])  # world units per latent
+
+
+def _ball(count: int = 3000):
+    """Points on a sphere (golden spiral) with a blocky random texture, and their radii."""
+    i = torch.arange(count, dtype=torch.float32) + 0.5
+    polar = torch.arccos(1 - 2 * i / count)
+    azimuth = math.pi * (1 + 5**0.5) * i
+    dirs = torch.stack([polar.sin() * azimuth.cos(), polar.cos(), polar.sin() * azimuth.sin()], dim=-1)
+    cells = (torch.floor(polar * 4) * 17 + torch.floor(azimuth % (2 * math.pi) * 3)).long()
+    palette = torch.rand(200, 3, generator=torch.Generator().manual_seed(3))
+    return CENTRE + RADIUS * dirs, palette[cells % 200], torch.full((count,), 0.015)
+
+
+def _scene(n: int = 7, ref: int = 3, spin: float = SPIN):
+    points, colors, radii = _ball()
+    offsets = torch.arange(n, dtype=torch.float32) - ref
+    rotations = rotation_matrices(offsets[:, None] * spin * AXIS)
+    translations = offsets[:, None] * SHIFT
+    K = torch.tensor([[F, 0.0, W / 2], [0.0, F, H / 2], [0.0, 0.0, 1.0]])
+    viewmats = torch.eye(4).repeat(n, 1, 1)
+    background = torch.full((H, W, 3), 0.4)
+    quats = torch.zeros(len(points), 4)
+    quats[:, 0] = 1.0
+    latents = []
+    for i, moved in enumerate(rigid_apply(points, CENTRE, rotations, translations)):
+        out = rasterize_torch(moved, quats, radii[:, None].repeat(1, 3), torch.full((len(points),), 0.95), colors,
+                              viewmats[i : i + 1], K[None], W, H)
+        latents.append(out.render[0] + (1 - out.alpha[0]) * background)
+    latents = torch.stack(latents)
+    # the ball's true silhouette: pixels whose ray passes within RADIUS of its centre
+    vv, uu = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    rays = torch.nn.functional.normalize(torch.stack([(uu - W / 2) / F, (vv - H / 2) / F, torch.ones_like(uu)], -1), dim=-1)
+    centres = CENTRE + translations
+    along = torch.einsum("hwk,nk->nhw", rays, centres)
+    evidence = ((centres.square().sum(-1)[:, None, None] - along.square()) < RADIUS**2).float()
+    return points, colors, radii, rotations, translations, K.repeat(n, 1, 1), viewmats, latents, evidence, background
+
+
+def test_visiting_order_walks_outwards_in_time_from_the_reference():
+    times = torch.tensor([0.5, 0.0, 0.25, 0.75, 1.0])
+    assert visiting_order(times, 2) == [(0, 2), (3, 0), (4, 3), (1, 2)]
+
+
+def test_rigid_track_recovers_a_spinning_moving_ball_from_its_visible_cap():
+    points, colors, radii, rotations, translations, Ks, viewmats, latents, evidence, background = _scene()
+    ref = 3
+    visible = points[:, 2] < CENTRE[2] - 0.1 * RADIUS  # the cap the reference camera sees
+    n = latents.shape[0]
+    track = track_rigid(
+        points[visible], colors[visible], radii[visible], CENTRE, torch.linspace(0, 1, n), evidence,
+        lambda i: latents[i], background.expand(n, H, W, 3), viewmats, Ks, ref, rasterize_torch,
+        RigidTrackConfig(steps=40),
+    )
+    assert torch.equal(track.rotvecs[ref], torch.zeros(3)) and torch.equal(track.translations[ref], torch.zeros(3))
+    true_angle = SPIN * (torch.arange(n) - ref).abs().float()
+    angle_error = (track.rotations() @ rotations.transpose(1, 2)).diagonal(dim1=1, dim2=2).sum(-1).sub(1).div(2).clamp(-1, 1).arccos()
+    assert float(angle_error.max()) < 0.25 * float(true_angle.max()), (angle_error, true_angle)
+    position_error = (track.apply(points[visible]) - rigid_apply(points[visible], CENTRE, rotations, translations)).norm(dim=-1)
+    assert float(position_error.mean()) < 0.25 * RADIUS
+    # the rigid model explains each latent better than the seeds left where they were
+    still = RigidTrack(CENTRE, torch.zeros(n, 3), torch.zeros(n, 3), track.loss)
+    far = [0, n - 1]
+    assert float((track.apply(points[visible])[far] - still.apply(points[visible])[far]).norm(dim=-1).mean()) > 0.1 * RADIUS
+    assert float(track.loss[far].max()) < 0.06
+
+
+def test_coverage_seeds_fill_the_side_that_turns_into_view_and_skip_what_is_known():
+    points, colors, radii, rotations, translations, Ks, viewmats, latents, evidence, _ = _scene(n=3, ref=1, spin=0.6)
+    exact = RigidTrack(CENTRE, rotation_matrices_to_vectors(rotations), translations, torch.zeros(3))
+    front = points[:, 2] < CENTRE[2]
+    depth = torch.full((3, H, W), 10.0)
+    c2w = torch.eye(4).repeat(3, 1, 1)
+    cfg = DynamicSeedingConfig(coverage_times=(0.0, 0.5, 1.0), seed_shape="cap", depth_scale=1.0, scale_pixels=0.8)
+    extra = coverage_seeds(exact, points[front], radii[front], evidence, depth, lambda i: latents[i], Ks, c2w,
+                           torch.tensor([0.0, 0.5, 1.0]), 1, cfg)
+    assert len(extra.points) > 0
+    # new seeds lie on the ball, outside the reference cap: the part the spin brought into view
+    assert float(((extra.points - CENTRE).norm(dim=-1) - RADIUS).abs().mean()) < 0.15 * RADIUS
+    gap = torch.cdist(extra.points, points[front]).min(dim=1).values
+    assert bool((gap > cfg.coverage_spacing * extra.radii).all())
+    sideways = (extra.points - CENTRE)[:, 0].abs() / RADIUS
+    assert float(sideways.mean()) > 0.4
+    # no turn: nothing new to see
+    still = RigidTrack(CENTRE, torch.zeros(3, 3), torch.zeros(3, 3), torch.zeros(3))
+    same = coverage_seeds(still, points[front], radii[front], evidence[[1, 1, 1]], depth, lambda i: latents[1], Ks, c2w,
+                          torch.tensor([0.0, 0.5, 1.0]), 1, cfg)
+    assert len(same.points) < 0.1 * len(extra.points)
+
+
+def rotation_matrices_to_vectors(rotations: torch.Tensor) -> torch.Tensor:
+    """Axis-angle vectors of rotations about AXIS (the test's spin axis)."""
+    angles = torch.atan2(rotations[:, 0, 2], rotations[:, 0, 0])
+    return angles[:, None] * AXIS
+
+
+def test_rigid_motion_moves_and_turns_what_is_within_reach_and_interpolates_in_time():
+    from edygs_ns.model.deformation import RigidMotion, quat_to_matrix
+
+    motion = RigidMotion(3)
+    means = torch.tensor([[0.0, 0.0, 3.2], [0.4, 0.0, 3.0], [5.0, 0.0, 3.0]])
+    quats = torch.nn.functional.normalize(torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.9, 0.1, 0.2, 0.3], [1.0, 0.0, 0.0, 0.0]]), dim=-1)
+    d_xyz, d_rot = motion(means, quats, 0.3)
+    assert not motion.active and torch.equal(d_xyz, torch.zeros(3, 3)) and torch.equal(d_rot, torch.zeros(3, 4))
+
+    times = torch.tensor([1.0, 0.0, 0.5])  # any order
+    rotvecs = torch.stack([0.8 * AXIS, -0.4 * AXIS, torch.zeros(3)])
+    translations = torch.tensor([[0.2, 0.0, 0.0], [-0.1, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    motion.set(CENTRE, 1.0, 0.5, times, rotvecs, translations)
+    with pytest.raises(ValueError, match="4 track times for 3"):
+        motion.set(CENTRE, 1.0, 0.5, torch.zeros(4), torch.zeros(4, 3), torch.zeros(4, 3))
+    d_xyz, d_rot = motion(means, quats, 1.0)
+    rotation = rotation_matrices(rotvecs[:1])[0]
+    assert torch.allclose(means[:2] + d_xyz[:2], (means[:2] - CENTRE) @ rotation.T + CENTRE + translations[0], atol=1e-5)
+    assert torch.equal(d_xyz[2], torch.zeros(3)) and torch.equal(d_rot[2], torch.zeros(4))  # out of reach
+    turned = quats[1] + d_rot[1]
+    assert torch.allclose(quat_to_matrix(turned), rotation @ quat_to_matrix(quats[1]), atol=1e-5)
+    # halfway between t = 0.5 (identity) and t = 1: half the angle and half the shift; held after the end
+    half, _ = motion(means, quats, 0.75)
+    expected = (means[:1] - CENTRE) @ rotation_matrices(rotvecs[:1] / 2)[0].T + CENTRE + translations[0] / 2
+    assert torch.allclose(means[:1] + half[:1], expected, atol=1e-5)
+    assert torch.equal(motion(means, quats, 3.0)[0], d_xyz)
+
+    # the track travels with the checkpoint; an older checkpoint without it loads as motionless
+    loaded = RigidMotion(3)
+    state = motion.state_dict()
+    loaded.prepare_load(state, "")
+    loaded.load_state_dict(state)
+    assert torch.equal(loaded(means, quats, 0.75)[0], half)
+    old = RigidMotion(3)
+    empty: dict = {}
+    old.prepare_load(empty, "")
+    old.load_state_dict(empty)
+    assert not old.active
+    # the track is trainable: a loss on the moved centres reaches the rotation and the shift
+    moved, _ = motion(means, quats, 0.75)
+    moved.sum().backward()
+    assert motion.rotvecs.grad is not None and motion.rotvecs.grad[2].abs().sum() > 0  # stored by time: 0, 0.5, 1
+    assert motion.shifts.grad[0].abs().sum() == 0  # t = 0 is not involved at t = 0.75
