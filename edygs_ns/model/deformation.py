@@ -157,13 +157,13 @@ class RigidMotion(nn.Module):
             state_dict.setdefault(prefix + name, value)
 
     def at(self, time: float) -> Tuple[Tensor, Tensor]:
-        """Interpolated rotation vector [3] and translation [3] at ``time``."""
-        count = self.times.shape[0]
-        t = min(max(float(time), float(self.times[0])), float(self.times[-1]))
-        hi = int(torch.searchsorted(self.times, torch.tensor(t, device=self.times.device)).clamp(1, count - 1)) if count > 1 else 0
-        lo = max(hi - 1, 0)
-        span = float(self.times[hi] - self.times[lo])
-        w = (t - float(self.times[lo])) / span if span > 0 else 0.0
+        """Interpolated rotation vector [3] and translation [3] at ``time`` (on the buffers' device,
+        no host round trip)."""
+        times = self.times
+        t = torch.as_tensor(float(time), device=times.device).clamp(times[0], times[-1])
+        hi = torch.searchsorted(times, t[None]).clamp(min(1, len(times) - 1), len(times) - 1)[0]
+        lo = (hi - 1).clamp_min(0)
+        w = ((t - times[lo]) / (times[hi] - times[lo]).clamp_min(1e-12)).clamp(0.0, 1.0)
         translations = self.translations
         return torch.lerp(self.rotvecs[lo], self.rotvecs[hi], w), torch.lerp(translations[lo], translations[hi], w)
 

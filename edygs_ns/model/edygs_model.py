@@ -316,13 +316,13 @@ class EdygsModel(SplatExportView):
                 distances = (points - track.centre).norm(dim=-1)
                 reach = self.config.rigid_track.reach * float(distances.max())
                 self.rigid_motion.set(track.centre, reach, float(distances.mean()), times, track.rotvecs, track.translations)
-                message += "; rigid base motion on"
             else:
                 offsets = track.apply(points) - points
             turn = float(track.rotvecs.norm(dim=-1).max())
             message += (
                 f" + {len(extra.points)} coverage seeds; rigid track on {len(times)} latents"
                 f" (turns up to {turn * 180.0 / torch.pi:.0f}°, L1 {float(track.loss.mean()):.4f})"
+                + ("; it is the base motion of the deformation" if self.config.rigid_track.as_base_motion else "")
             )
             fit_times = times
         else:
