@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from edygs_ns.losses.events import event_loss, log_intensity, predicted_event_count
-from edygs_ns.losses.photometric import l1_dssim
+from edygs_ns.losses.photometric import l1_dssim, latent_confidence
 from edygs_ns.losses.regularizers import mask_consistency, mask_l1, motion_loss
 
 THETA = 0.2
@@ -61,6 +61,33 @@ def test_l1_dssim_zero_for_identical_and_weighted_static_term():
     assert l1_dssim(other, img, 0.2, weight=weight).item() < 1e-6
     with pytest.raises(ValueError):
         l1_dssim(img, img[:8], 0.2)
+
+
+def test_image_weights_scale_each_image_of_the_batch():
+    torch.manual_seed(1)
+    target = torch.rand(2, 16, 16, 3)
+    pred = target.clone()
+    pred[1] = torch.rand(16, 16, 3)  # only the second image is wrong
+    plain = l1_dssim(pred, target, 0.2)
+    assert torch.isclose(l1_dssim(pred, target, 0.2, image_weights=torch.ones(2)), plain, atol=1e-6)
+    # the error sits in image 1: weighting it by 3 (and image 0 by anything) triples the loss
+    assert torch.isclose(l1_dssim(pred, target, 0.2, image_weights=torch.tensor([0.5, 3.0])), 3 * plain, rtol=1e-4)
+    assert l1_dssim(pred, target, 0.2, image_weights=torch.tensor([1.0, 0.0])).item() < 1e-6
+    with pytest.raises(ValueError, match="image_weights"):
+        l1_dssim(pred, target, 0.2, image_weights=torch.ones(3))
+
+
+def test_latent_confidence_trusts_the_exposure_middle():
+    index = torch.tensor([0, 1, 2, 3, 4, -1])
+    flat = latent_confidence(index, 5, 0.0)
+    assert torch.equal(flat, torch.ones(6))
+    w = latent_confidence(index, 5, 4.0)
+    assert torch.isclose(w[:5].mean(), torch.tensor(1.0))  # the loss keeps its scale
+    assert w[2] > w[1] > w[0] and torch.isclose(w[0], w[4]) and torch.isclose(w[1], w[3])
+    assert torch.isclose(w[2] / w[0], torch.tensor(5.0))  # 1 + a at the ends
+    assert w[5] == 1.0  # not an EDI latent (a novel view or a blurry frame)
+    with pytest.raises(ValueError, match="centre_weighting"):
+        latent_confidence(index, 5, -1.0)
 
 
 def test_static_term_pushes_mask_up_where_the_residual_is_large():

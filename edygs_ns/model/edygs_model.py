@@ -22,7 +22,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from edygs_ns.events.color import decode_to_linear
 from edygs_ns.losses.events import DEFAULT_LOG_EPS, event_loss
-from edygs_ns.losses.photometric import l1_dssim
+from edygs_ns.losses.photometric import l1_dssim, latent_confidence
 from edygs_ns.losses.regularizers import mask_consistency, mask_l1, motion_loss
 from edygs_ns.model.appearance import MAX_SH_DEGREE, sh_to_rgb
 from edygs_ns.model.deformation import DeformationConfig, DeformationField, RigidMotion
@@ -91,6 +91,10 @@ class EdygsModelConfig(ModelConfig):
     """weight of L(Ĉ, EDI latent)"""
     lambda_edi_static: float = 1.0
     """weight of the static term L(Ĉ(1 − M), EDI(1 − M)) (static phase)"""
+    edi_centre_weighting: float = 0.0
+    """trust EDI latents near their exposure's middle more: each latent's EDI terms are weighted
+    by 1 / (1 + a (2u − 1)²), u its place in the exposure in [0, 1], normalised to mean 1
+    (losses/photometric.py: latent_confidence); 0 weighs every latent alike"""
     lambda_event: float = 0.5
     """weight of the event loss between consecutive latent renders"""
     lambda_mask: float = 0.15
@@ -163,6 +167,13 @@ class EdygsModel(SplatExportView):
         if not self.config.optimize_poses:
             camera_config = CameraOptimizerConfig(mode="off")
         self.camera_optimizer: CameraOptimizer = camera_config.setup(num_cameras=self.num_train_data, device="cpu")
+        latent_index = metadata.get("latent_index")
+        if latent_index is None or len(latent_index) != self.num_train_data:
+            latent_index = torch.full((self.num_train_data,), -1, dtype=torch.long)
+        # per-training-image weight of the EDI terms (1 for images that are not EDI latents)
+        self.register_buffer(
+            "edi_weights", latent_confidence(latent_index, int(metadata.get("k", 1)), self.config.edi_centre_weighting), persistent=False
+        )
         self.strategy = make_strategy(self.config.densify)
         self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
         # motion masks M̂ rendered at the end of the static phase, one per training latent [N, H, W]
@@ -461,10 +472,12 @@ class EdygsModel(SplatExportView):
         rgb, mask = outputs["rgb"], outputs["mask"]
         gt = self._as_float_image(batch["image"], self.device)[..., :3].reshape(rgb.shape)
         losses: Dict[str, Tensor] = {}
+        indices = self._batch_indices(batch, rgb) if self.training else None
+        weights = None if indices is None or cfg.edi_centre_weighting == 0 else self.edi_weights[indices.to(self.edi_weights.device)]
         if cfg.use_edi_loss and is_active("edi", phase):
-            losses["edi"] = cfg.lambda_edi * l1_dssim(rgb, gt, cfg.ssim_lambda)
+            losses["edi"] = cfg.lambda_edi * l1_dssim(rgb, gt, cfg.ssim_lambda, image_weights=weights)
         if cfg.use_edi_loss and cfg.use_motion_mask and is_active("edi_static", phase):
-            losses["edi_static"] = cfg.lambda_edi_static * l1_dssim(rgb, gt, cfg.ssim_lambda, weight=1.0 - mask)
+            losses["edi_static"] = cfg.lambda_edi_static * l1_dssim(rgb, gt, cfg.ssim_lambda, weight=1.0 - mask, image_weights=weights)
         if cfg.use_event_loss and is_active("event", phase) and "event_map" in batch and rgb.dim() == 4 and rgb.shape[0] == 2:
             linear = decode_to_linear(rgb, self.color_space)
             event_map = batch["event_map"].to(self.device).float()
@@ -472,7 +485,6 @@ class EdygsModel(SplatExportView):
         if cfg.use_motion_mask and is_active("mask_l1", phase):
             losses["mask_l1"] = cfg.lambda_mask * mask_l1(mask)
         if cfg.use_motion_mask and is_active("mask_consistency", phase) and self.static_masks.numel() > 0:
-            indices = self._batch_indices(batch, rgb)
             if indices is not None:
                 reference = self.static_masks[indices.to(self.static_masks.device)].to(self.device).float()[..., None]
                 losses["mask_consistency"] = cfg.lambda_mask_consistency * mask_consistency(mask.reshape(reference.shape), reference)
