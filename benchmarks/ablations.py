@@ -10,7 +10,7 @@ command, machine and date that produced them.
 
 Usage::
 
-    python benchmarks/ablations.py --out benchmarks/results/cpu --seeds 0 1 2 --iters 1500
+    OMP_NUM_THREADS=1 python benchmarks/ablations.py --out benchmarks/results/cpu --seeds 0 1 2 --iters 3000
 
 Scenes, runs and evaluations already in ``--out`` are reused, so seeds can train as separate
 processes (one per core) into the same folder and a last call over all seeds writes the combined
@@ -62,8 +62,8 @@ class AblationBenchConfig:
     """output folder (scenes, runs, results.json, results.md)"""
     seeds: List[int] = field(default_factory=lambda: [0, 1, 2])
     """synthetic scenes (seed picks textures, object motion and camera path)"""
-    iters: int = 1500
-    """training iterations per run"""
+    iters: int = 3000
+    """training iterations per run (the CPU demo's length)"""
     poses: str = "colmap"
     """how scenes are posed: colmap (the paper's pipeline) or given (true poses)"""
     variants: List[str] = field(default_factory=lambda: [v[0] for v in VARIANTS])

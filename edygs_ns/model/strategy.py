@@ -26,8 +26,9 @@ rasteriser accumulates (its backward returns dL/d(NDC) = W/2 * dL/d(pixel)), so 
 compares directly with 3DGS's ``densify_grad_threshold`` (0.0002). A threshold quoted from code
 that accumulates pixel-space gradients would have to be divided by W/2 first; the 7e-4 of the
 reference notes, if it comes from a 3DGS-style rasteriser, is the same NDC quantity with a higher
-bar (fewer new Gaussians). The default stays gsplat's/3DGS's 0.0002; set 7e-4 to follow the
-authors.
+bar (fewer new Gaussians). The default follows the authors (7e-4): on the built-in 128x96 scene
+3DGS's 0.0002 grew 117k Gaussians (ten per pixel) in a 3000-iteration run, which made it 1.6x
+slower for 0.2 dB.
 """
 
 from __future__ import annotations
@@ -61,8 +62,11 @@ class DensifyConfig:
     """reset opacities to 2 * prune_opa every this many steps"""
     pause_refine_after_reset: int = 0
     """skip refinement for this many steps after an opacity reset"""
-    grow_grad2d: float = 0.0002
-    """mean screen-space gradient norm (NDC units per camera, as 3DGS) above which a Gaussian grows"""
+    grow_grad2d: float = 0.0007
+    """mean screen-space gradient norm (NDC units per camera, as 3DGS) above which a Gaussian grows
+    (the authors' 7e-4; 3DGS's is 2e-4). Built-in scene, seed 0, 3000 CPU iterations: 2e-4 / 4e-4 /
+    7e-4 grew 117k / 54k / 27k Gaussians, trained in 1009 / 811 / 615 s, input-view PSNR 28.34 /
+    28.31 / 28.14 (the first with edi_centre_weighting 0, the others 2)"""
     grow_scale3d: float = 0.01
     """growing Gaussians whose largest scale is below this fraction of the scene scale are cloned,
     larger ones are split"""
