@@ -82,6 +82,35 @@ def test_phases_decide_what_trains(tiny_scene, tmp_path):
     assert dm.time_window == pytest.approx((0.5 - half, 0.5 + half))
 
 
+def test_edi_terms_trust_the_exposure_middle(tiny_scene, tmp_path):
+    config = tiny_trainer_config(tiny_scene, tmp_path, iters=0, pose_init=3, static=3)
+    trainer = _setup_trainer(config)
+    model, dm = trainer.pipeline.model, trainer.pipeline.datamanager
+    assert model.config.edi_centre_weighting > 0
+    place = dm.latent_index
+    weights = model.edi_weights
+    assert weights.shape == place.shape
+    middle, ends = weights[place == 2], weights[(place == 0) | (place == 4)]
+    assert torch.allclose(middle, middle[0]) and torch.allclose(ends, ends[0])
+    assert middle[0] / ends[0] == pytest.approx(1.0 + model.config.edi_centre_weighting)
+    # the weights reach the loss: a pair whose error sits in its middle latent costs more than the
+    # same error in an end latent
+    model.train()
+    model.before_step(trainer.optimizers, 0)
+    first = int(torch.nonzero(place == 0)[0])
+    mid = int(torch.nonzero((place == 2) & (dm.blurry_index == dm.blurry_index[first]))[0])
+    image = dm.train_image(first)[..., :3].expand(2, -1, -1, -1)  # one picture in both places: only the weight differs
+
+    def edi_loss(wrong: int) -> float:
+        rgb = image.clone()
+        rgb[wrong] = 1.0 - rgb[wrong]
+        outputs = {"rgb": rgb, "mask": torch.zeros(*rgb.shape[:-1], 1)}
+        batch = {"image": image, "image_idx": torch.tensor([first, mid])}
+        return float(model.get_loss_dict(outputs, batch)["edi"])
+
+    assert edi_loss(1) / edi_loss(0) == pytest.approx(1.0 + model.config.edi_centre_weighting, rel=1e-4)
+
+
 def test_training_lowers_the_loss_and_resumes_exactly(tiny_scene, tmp_path):
     iters = 60
     config = tiny_trainer_config(tiny_scene, tmp_path / "a", iters=iters, pose_init=15, static=20)
