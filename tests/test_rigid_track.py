@@ -9,7 +9,7 @@ import torch
 
 from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig
 from edygs_ns.model.rigid_track import (
-    RigidTrack, RigidTrackConfig, coverage_seeds, rigid_apply, rotation_matrices, seeds_seen_at, track_rigid, visiting_order,
+    RigidTrack, RigidTrackConfig, coverage_seeds, rigid_apply, rotation_matrices, track_rigid, visiting_order,
 )
 from edygs_ns.render.torch_backend import rasterize_torch
 
@@ -108,42 +108,6 @@ def test_coverage_seeds_fill_the_side_that_turns_into_view_and_skip_what_is_know
     same = coverage_seeds(still, points[front], radii[front], evidence[[1, 1, 1]], depth, lambda i: latents[1], Ks, c2w,
                           torch.tensor([0.0, 0.5, 1.0]), 1, cfg)
     assert len(same.points) < 0.1 * len(extra.points)
-
-
-def test_tracking_grows_the_seeds_as_the_object_turns():
-    spin = 0.3  # radians per latent: the far side comes into view at the ends
-    points, colors, radii, rotations, translations, Ks, viewmats, latents, evidence, background = _scene(spin=spin)
-    ref, n = 3, latents.shape[0]
-    times = torch.linspace(0, 1, n)
-    visible = points[:, 2] < CENTRE[2] - 0.1 * RADIUS
-    depth = torch.full((n, H, W), 10.0)
-    c2w = torch.eye(4).repeat(n, 1, 1)
-    seeding = DynamicSeedingConfig(seed_shape="cap", depth_scale=1.0, scale_pixels=0.8)
-    calls = []
-
-    def grow(k, centre_k, to_canonical, existing):
-        calls.append(k)
-        return seeds_seen_at(k, centre_k, to_canonical, existing, evidence, depth, lambda i: latents[i], Ks, c2w, seeding)
-
-    def track(grow_every: float) -> RigidTrack:
-        return track_rigid(
-            points[visible], colors[visible], radii[visible], CENTRE, times, evidence, lambda i: latents[i],
-            background.expand(n, H, W, 3), viewmats, Ks, ref, rasterize_torch, RigidTrackConfig(steps=40, grow_every=grow_every),
-            grow=grow,
-        )
-
-    off = track(0.0)
-    assert calls == [] and len(off.grown.points) == 0
-    grown = track(0.3)
-    assert calls == [5, 1]  # 1/3 of the clip out from t = 0.5 in each direction (times 0, 1/6, ..., 1)
-    assert len(grown.grown.points) > 0
-    # the new seeds lie on the ball, away from the cap seeded at the reference
-    assert float(((grown.grown.points - CENTRE).norm(dim=-1) - RADIUS).abs().mean()) < 0.15 * RADIUS
-    assert float((grown.grown.points - CENTRE)[:, 0].abs().mean()) > 0.3 * RADIUS
-    # and the walk still follows the turn
-    true_angle = spin * (torch.arange(n) - ref).abs().float()
-    angle_error = (grown.rotations() @ rotations.transpose(1, 2)).diagonal(dim1=1, dim2=2).sum(-1).sub(1).div(2).clamp(-1, 1).arccos()
-    assert float(angle_error.max()) < 0.25 * float(true_angle.max()), (angle_error, true_angle)
 
 
 def rotation_matrices_to_vectors(rotations: torch.Tensor) -> torch.Tensor:

@@ -27,7 +27,7 @@ from edygs_ns.losses.regularizers import mask_consistency, mask_l1, motion_loss
 from edygs_ns.model.appearance import MAX_SH_DEGREE, sh_to_rgb
 from edygs_ns.model.deformation import DeformationConfig, DeformationField, RigidMotion
 from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig, evidence_track, fit_motion, motion_evidence, seed_gaussians
-from edygs_ns.model.rigid_track import RigidTrackConfig, coverage_seeds, seeds_seen_at, track_rigid
+from edygs_ns.model.rigid_track import RigidTrackConfig, coverage_seeds, track_rigid
 from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES, init_gaussians, seed_tensors
 from edygs_ns.model.splat_export_view import SplatExportView
 from edygs_ns.model.strategy import DensifyConfig, append_gaussians, make_strategy, strategy_info
@@ -317,17 +317,11 @@ class EdygsModel(SplatExportView):
         )
         offsets: Optional[Tensor] = None
         if len(points) and self.config.rigid_track.enabled:
-            def grow(k: int, centre_k: Tensor, to_canonical, existing: Tensor):
-                return seeds_seen_at(k, centre_k, to_canonical, existing, evidence, depth, image, Ks, c2w_cv, cfg)
-
             track = track_rigid(
                 points, colors, radii, seeds.centre, times, evidence, image, torch.stack(statics),
                 viewmats_from_c2w(torch.stack(cams_to_world)), Ks, ref, select_backend(self.device, self.config.rasterizer),
-                self.config.rigid_track, grow=grow,
+                self.config.rigid_track,
             )
-            if track.grown is not None and len(track.grown.points):
-                points, colors, radii = (torch.cat([a, b]) for a, b in ((points, track.grown.points), (colors, track.grown.colors), (radii, track.grown.radii)))
-                message += f" + {len(track.grown.points)} seeds grown while tracking"
             extra = coverage_seeds(track, points, radii, evidence, depth, image, Ks, c2w_cv, times, ref, cfg)
             points, colors, radii = (torch.cat([a, b]) for a, b in ((points, extra.points), (colors, extra.colors), (radii, extra.radii)))
             if self.config.rigid_track.as_base_motion:

@@ -23,7 +23,7 @@ reference latent did not see (``coverage_seeds``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, List, Optional, Tuple
+from typing import Callable, List, Tuple
 
 import torch
 from jaxtyping import Float
@@ -58,13 +58,6 @@ class RigidTrackConfig:
     """opacity of the seeds while tracking (an object hides what is behind it)"""
     region_dilation: int = 5
     """the loss counts pixels within this many pixels of the latent's motion evidence"""
-    grow_every: float = 0.0
-    """while tracking, each time the walk has gone this much normalised time further from the
-    last growth (from the reference), the latent just fitted adds seeds for what the tracked set
-    does not cover: its evidence pixels, taken back to the canonical frame by the transform just
-    found and kept where no seed is within ``seeding.coverage_spacing`` radii, so the set being
-    tracked keeps up with an object that turns; 0: off (coverage seeds only after tracking, at
-    ``seeding.coverage_times``)"""
 
 
 @dataclass
@@ -77,8 +70,6 @@ class RigidTrack:
     rotvecs: Tensor
     translations: Tensor
     loss: Tensor
-    grown: Optional[Seeds] = None
-    """seeds added while tracking (``RigidTrackConfig.grow_every``), canonical frame"""
 
     def rotations(self) -> Float[Tensor, "N 3 3"]:
         return rotation_matrices(self.rotvecs)
@@ -89,7 +80,8 @@ class RigidTrack:
 
     def to_canonical(self, points: Float[Tensor, "S 3"], index: int) -> Float[Tensor, "S 3"]:
         """Canonical positions of points observed at latent ``index`` (the inverse transform)."""
-        return rigid_inverse(points, self.centre, self.rotations()[index], self.translations[index])
+        rotation = self.rotations()[index]
+        return (points - self.centre - self.translations[index]) @ rotation + self.centre
 
 
 def rotation_matrices(rotvecs: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3 3"]:
@@ -102,16 +94,6 @@ def rigid_apply(points: Tensor, centre: Tensor, rotations: Tensor, translations:
     """R (x - c) + c + τ for [S, 3] points and [N, 3, 3] rotations / [N, 3] translations -> [N, S, 3]."""
     local = points - centre
     return torch.einsum("nij,sj->nsi", rotations, local) + centre + translations[:, None]
-
-
-def rigid_inverse(points: Tensor, centre: Tensor, rotation: Tensor, translation: Tensor) -> Tensor:
-    """Canonical positions [S, 3] of points [S, 3] moved by R (x - c) + c + τ (one rotation [3, 3])."""
-    return (points - centre - translation) @ rotation + centre
-
-
-#: grow(latent, object centre there [3], to_canonical, seeds so far [S, 3]) -> new canonical seeds
-#: (see track_rigid)
-GrowFn = Callable[[int, Tensor, Callable[[Tensor], Tensor], Tensor], Seeds]
 
 
 def visiting_order(times: Float[Tensor, "N"], ref: int) -> List[Tuple[int, int]]:
@@ -142,7 +124,6 @@ def track_rigid(
     ref: int,
     backend: RasterBackend,
     config: RigidTrackConfig,
-    grow: Optional[GrowFn] = None,
 ) -> RigidTrack:
     """Fit a rigid transform of the seeds to every latent (identity at ``ref``).
 
@@ -155,10 +136,6 @@ def track_rigid(
         backgrounds: the static model's render of every latent (the seeds are composited over it).
         viewmats: world-to-camera (OpenCV axes) of every latent; Ks: pinhole intrinsics in pixels.
         ref: the latent the seeds were back-projected from.
-        grow: with ``config.grow_every`` > 0, called after fitting a latent where the walk has gone
-            that far in time since the last growth: (latent, the object's centre there, its inverse
-            transform, the seeds so far) -> new canonical seeds, which join the tracked set
-            (``RigidTrack.grown``); ``seeds_seen_at`` does that.
     """
     n = backgrounds.shape[0]
     device = points.device
@@ -166,15 +143,10 @@ def track_rigid(
     rotvecs = torch.zeros(n, 3, device=device)
     units = torch.zeros(n, 3, device=device)  # translation / size
     losses = torch.zeros(n, device=device)
-    n_given = len(points)
-
-    def as_gaussians(radii: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
-        """Identity rotations [S, 4], isotropic scales [S, 3] and the tracking opacity [S]."""
-        quats = torch.zeros(len(radii), 4, device=device)
-        quats[:, 0] = 1.0
-        return quats, radii[:, None].expand(-1, 3).contiguous(), torch.full((len(radii),), config.opacity, device=device)
-
-    quats, scales, opacities = as_gaussians(radii)
+    quats = torch.zeros(len(points), 4, device=device)
+    quats[:, 0] = 1.0
+    scales = radii[:, None].expand(-1, 3).contiguous()
+    opacities = torch.full((len(points),), config.opacity, device=device)
     height, width = backgrounds.shape[1:3]
     size_px = 2 * config.region_dilation + 1
     regions = torch.nn.functional.max_pool2d(evidence[:, None].float(), size_px, stride=1, padding=config.region_dilation)[:, 0] > 0.5
@@ -185,8 +157,6 @@ def track_rigid(
         composite = out.render[0] + (1.0 - out.alpha[0]) * backgrounds[i]
         return (composite - latent(i)).abs()[regions[i]].mean()
 
-    ref_time = float(times[ref])
-    last_growth = {1: ref_time, -1: ref_time}
     with torch.enable_grad():
         for i, prev in visiting_order(times, ref):
             if not bool(regions[i].any()):
@@ -203,50 +173,10 @@ def track_rigid(
                 loss.backward()
                 optimizer.step()
             rotvecs[i], units[i] = rotvec.detach(), unit.detach()
-            direction = 1 if float(times[i]) >= ref_time else -1
-            if grow is not None and config.grow_every > 0 and abs(float(times[i]) - last_growth[direction]) >= config.grow_every:
-                last_growth[direction] = float(times[i])
-                rotation, shift = rotation_matrices(rotvecs[i : i + 1])[0], units[i] * size
-                new = grow(i, centre + shift, lambda x: rigid_inverse(x, centre, rotation, shift), points)
-                if len(new.points):
-                    points, colors, radii = torch.cat([points, new.points]), torch.cat([colors, new.colors]), torch.cat([radii, new.radii])
-                    quats, scales, opacities = as_gaussians(radii)
     with torch.no_grad():
         for i in range(n):
             losses[i] = render_loss(i, rotvecs[i], units[i]) if bool(regions[i].any()) else 0.0
-    grown = Seeds(points[n_given:], colors[n_given:], radii[n_given:], centre)
-    return RigidTrack(centre=centre, rotvecs=rotvecs, translations=units * size, loss=losses, grown=grown)
-
-
-def seeds_seen_at(
-    k: int,
-    centre_k: Float[Tensor, "3"],
-    to_canonical: Callable[[Tensor], Tensor],
-    existing: Float[Tensor, "S 3"],
-    evidence: Float[Tensor, "N H W"],
-    depth: Float[Tensor, "N H W"],
-    latent: Callable[[int], Float[Tensor, "H W 3"]],
-    Ks: Float[Tensor, "N 3 3"],
-    cams_to_world_cv: Float[Tensor, "N 4 4"],
-    config: DynamicSeedingConfig,
-) -> Seeds:
-    """Canonical seeds for what latent ``k`` sees of the object and no existing seed covers.
-
-    Its evidence pixels are back-projected as a cap centred at the object's centre ``centre_k``
-    (world units, at latent k), taken to the canonical frame by ``to_canonical`` and kept where
-    they are farther than ``config.coverage_spacing`` radii from every existing seed."""
-    empty = Seeds(existing.new_zeros(0, 3), existing.new_zeros(0, 3), existing.new_zeros(0), centre_k)
-    world_to_cam = torch.linalg.inv(cams_to_world_cv[k])
-    z_centre = float(world_to_cam[2, :3] @ centre_k + world_to_cam[2, 3])
-    if z_centre <= 0:
-        return empty
-    seen = seed_gaussians(evidence[k], depth[k], latent(k), Ks[k], cams_to_world_cv[k], config, centre_depth=z_centre)
-    if len(seen.points) == 0:
-        return empty
-    canonical = to_canonical(seen.points)
-    gap = torch.cdist(canonical, existing).min(dim=1).values if len(existing) else torch.full_like(seen.radii, float("inf"))
-    new = gap > config.coverage_spacing * seen.radii
-    return Seeds(canonical[new], seen.colors[new], seen.radii[new], centre_k)
+    return RigidTrack(centre=centre, rotvecs=rotvecs, translations=units * size, loss=losses)
 
 
 def coverage_seeds(
@@ -275,12 +205,19 @@ def coverage_seeds(
         k = int(torch.argmin((times - t).abs()))
         if k == ref:
             continue
-        new = seeds_seen_at(
-            k, track.centre + track.translations[k], lambda x: track.to_canonical(x, k), every,
-            evidence, depth, latent, Ks, cams_to_world_cv, config,
-        )
-        kept_points.append(new.points)
-        kept_colors.append(new.colors)
-        kept_radii.append(new.radii)
-        every = torch.cat([every, new.points])
+        centre_k = track.centre + track.translations[k]
+        world_to_cam = torch.linalg.inv(cams_to_world_cv[k])
+        z_centre = float(world_to_cam[2, :3] @ centre_k + world_to_cam[2, 3])
+        if z_centre <= 0:
+            continue
+        seen = seed_gaussians(evidence[k], depth[k], latent(k), Ks[k], cams_to_world_cv[k], config, centre_depth=z_centre)
+        if len(seen.points) == 0:
+            continue
+        canonical = track.to_canonical(seen.points, k)
+        gap = torch.cdist(canonical, every).min(dim=1).values
+        new = gap > config.coverage_spacing * seen.radii
+        kept_points.append(canonical[new])
+        kept_colors.append(seen.colors[new])
+        kept_radii.append(seen.radii[new])
+        every = torch.cat([every, canonical[new]])
     return Seeds(torch.cat(kept_points), torch.cat(kept_colors), torch.cat(kept_radii), track.centre)
