@@ -4,9 +4,9 @@ The method's defaults (``configs/method_configs.py``) are for a full-length GPU 
 run keeps the same shape: phase lengths, the dynamic-phase time curriculum and the densification
 window are fractions of the run. The learning-rate decays are not scaled: they keep the
 full-length schedules (20k steps), so a short run ends at a higher rate. Scaling them to the run
-was worse on the built-in scene (seed 0, 3000 CPU iterations, input-view PSNR): 28.31 as is,
-27.88 with the means' decay over the run, 27.68 with the camera poses' too; at 1500 iterations
-also the deformation's: 26.61 against 27.55. ``python -m edygs_ns.configs.run_length ITERS``
+was worse on the built-in scene (seed 0, 3000 CPU iterations with densification threshold 4e-4,
+input-view PSNR): 28.31 as is, 27.88 with the means' decay over the run, 27.68 with the camera
+poses' too; at 1500 iterations (threshold 2e-4) also the deformation's: 26.61 against 27.55. ``python -m edygs_ns.configs.run_length ITERS``
 prints the ``ns-train`` arguments (the demo script uses it).
 """
 
