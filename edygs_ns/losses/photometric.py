@@ -42,17 +42,14 @@ def l1_dssim(
     if weight is not None:
         pred = pred * weight
         target = target * weight
-    if image_weights is None:
-        l1 = (pred - target).abs().mean()
-        if ssim_lambda == 0.0:
-            return l1
-        return (1.0 - ssim_lambda) * l1 + ssim_lambda * dssim(pred, target)
-    batch = pred.reshape(-1, *pred.shape[-3:])
-    if image_weights.shape != batch.shape[:1]:
-        raise ValueError(f"l1_dssim: image_weights {tuple(image_weights.shape)} for {batch.shape[0]} images")
-    per_image = (batch - target.reshape(batch.shape)).abs().mean(dim=(1, 2, 3))
+    batch, target = pred.reshape(-1, *pred.shape[-3:]), target.reshape(-1, *pred.shape[-3:])
+    per_image = (batch - target).abs().mean(dim=(1, 2, 3))
     if ssim_lambda != 0.0:
-        per_image = (1.0 - ssim_lambda) * per_image + ssim_lambda * dssim(batch, target.reshape(batch.shape), per_image=True)
+        per_image = (1.0 - ssim_lambda) * per_image + ssim_lambda * dssim(batch, target, per_image=True)
+    if image_weights is None:
+        return per_image.mean()
+    if image_weights.shape != per_image.shape:
+        raise ValueError(f"l1_dssim: image_weights {tuple(image_weights.shape)} for {per_image.shape[0]} images")
     return (image_weights.to(per_image) * per_image).mean()
 
 
