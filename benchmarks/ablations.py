@@ -3,7 +3,8 @@
 For each seed: write the synthetic scene (``edygs-synth``), pose it (``edygs-process``: COLMAP on
 the EDI latents, or the true poses with ``--poses given``), then train every variant with
 ``ns-train`` — the blurry-input deformable-3DGS baseline (``edygs-blurry``) and the ablation
-presets (events-only, EDI-only, EDI+events, +pose, +mask = full EDyGS) — and evaluate each run
+presets (events-only, EDI-only, EDI+events, +pose, +mask = EDyGS with the paper's losses, + our
+blur loss = the default EDyGS) — and evaluate each run
 with ``edygs-eval``'s ``evaluate_run``. Writes ``OUT/results.json`` and ``OUT/results.md``
 (input-view and novel-view PSNR/SSIM/LPIPS, mask IoU, ATE before/after, training time) with the
 command, machine and date that produced them.
@@ -46,7 +47,8 @@ VARIANTS: Tuple[Tuple[str, str, Any], ...] = (
     ("EDI only", "edygs", "edi-only"),
     ("EDI + events", "edygs", "edi-events"),
     ("+ pose", "edygs", "edi-events-pose"),
-    ("+ mask (EDyGS)", "edygs", "full"),
+    ("+ mask (EDyGS, paper)", "edygs", "paper"),
+    ("+ blur (EDyGS, ours)", "edygs", "full"),
 )
 INPUT_SPLIT = "input views"
 NOVEL_SPLIT = "novel views"
@@ -121,7 +123,7 @@ def make_scene(cfg: AblationBenchConfig, seed: int) -> Path:
 
 def train(cfg: AblationBenchConfig, scene: Path, label: str, method: str, ablation: Any, runs: Path) -> Tuple[Path, float]:
     """ns-train one variant; returns (config.yml, wall seconds)."""
-    name = label.replace(" ", "_").replace("+", "plus").replace("(", "").replace(")", "")
+    name = label.replace(" ", "_").replace("+", "plus").replace("(", "").replace(")", "").replace(",", "")
     config_path = runs / scene.parent.name / method / name / "config.yml"
     timing = config_path.parent / "train_seconds.txt"
     if config_path.exists() and timing.exists():

@@ -44,6 +44,8 @@ def test_pairs_are_consecutive_latents_with_their_events(scene):
         assert torch.allclose(batch["image"][1], _pixels(scene.root / f"latents/{b:04d}_{lat + 1}.png"))
         assert batch["event_map"].shape == (scene.height, scene.width)
         assert torch.equal(batch["event_map"], torch.from_numpy(scene.event_maps[b, lat]))
+        assert batch["blurry"].shape == (1, scene.height, scene.width, 3)
+        assert torch.allclose(batch["blurry"][0], _pixels(scene.blurry_files[b]))
 
 
 def test_every_pair_once_per_epoch(scene):
@@ -113,3 +115,9 @@ def test_time_window_limits_the_pairs_served(scene):
     dm.set_time_window(None)
     served = {tuple(dm.next_train(0)[1]["image_idx"].tolist()) for _ in range(3 * len(dm.pairs))}
     assert served == set(dm.pairs)
+
+
+def test_blurry_frame_of_the_wrong_size_is_named(scene):
+    Image.new("RGB", (scene.width + 1, scene.height)).save(scene.blurry_files[1])
+    with pytest.raises(ValueError, match=str(scene.blurry_files[1].name)):
+        _manager(scene.root)

@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+from edygs_ns.losses.blur import blur_loss
 from edygs_ns.losses.events import event_loss, log_intensity, predicted_event_count
 from edygs_ns.losses.photometric import l1_dssim, latent_confidence
 from edygs_ns.losses.regularizers import mask_consistency, mask_l1, motion_loss
@@ -121,3 +122,25 @@ def test_motion_loss_penalises_only_the_static_part():
     assert math.isclose(motion_loss(d_xyz, d_rot, d_scale, static_vs_dynamic).item(), 1.5)
     assert motion_loss(d_xyz, d_rot, d_scale, torch.ones(2)).item() == 0.0
     assert motion_loss(d_xyz[:0], d_rot[:0], d_scale[:0], torch.ones(0)).item() == 0.0
+
+
+def test_blur_loss_is_zero_when_the_latents_average_to_the_blurry_frame():
+    generator = torch.Generator().manual_seed(0)
+    latents = torch.rand(2, 5, 4, 6, 3, generator=generator)
+    assert blur_loss(latents, latents.mean(dim=1)).item() == 0.0
+    # a per-colour error that EDI (grey ratios) cannot see is measured: red moved into one latent
+    shifted = latents.clone()
+    shifted[:, 0, ..., 0] += 0.5
+    shifted[:, 1, ..., 0] -= 0.5
+    assert blur_loss(shifted, latents.mean(dim=1)).item() == pytest.approx(0.0, abs=1e-6)
+    brighter = latents + 0.1
+    assert blur_loss(brighter, latents.mean(dim=1)).item() == pytest.approx(0.1, abs=1e-6)
+    with pytest.raises(ValueError, match="blur_loss"):
+        blur_loss(latents, latents.mean(dim=1)[:1])
+
+
+def test_blur_loss_spreads_its_gradient_over_the_exposure():
+    latents = torch.full((1, 4, 2, 2, 3), 0.5, requires_grad=True)
+    blur_loss(latents, torch.full((1, 2, 2, 3), 0.4)).backward()
+    # d/dR_j of |mean_j R_j - B| averaged over 12 values: 1 / (4 * 12) for every latent
+    assert torch.allclose(latents.grad, torch.full_like(latents, 1.0 / 48))

@@ -159,3 +159,21 @@ def test_rigid_motion_moves_and_turns_what_is_within_reach_and_interpolates_in_t
     moved.sum().backward()
     assert motion.rotvecs.grad is not None and motion.rotvecs.grad[2].abs().sum() > 0  # stored by time: 0, 0.5, 1
     assert motion.shifts.grad[0].abs().sum() == 0  # t = 0 is not involved at t = 0.75
+
+
+def test_extrapolated_starts_keep_up_with_a_fast_spin():
+    # a fast spin and few steps per latent: started from the neighbour's fit, the track lags
+    # further behind at every latent; started at constant velocity it keeps up
+    points, colors, radii, rotations, translations, Ks, viewmats, latents, evidence, background = _scene(spin=0.3)
+    ref, n = 3, latents.shape[0]
+    visible = points[:, 2] < CENTRE[2] - 0.1 * RADIUS
+    errors = {}
+    for extrapolate in (False, True):
+        track = track_rigid(
+            points[visible], colors[visible], radii[visible], CENTRE, torch.linspace(0, 1, n), evidence,
+            lambda i: latents[i], background.expand(n, H, W, 3), viewmats, Ks, ref, rasterize_torch,
+            RigidTrackConfig(steps=10, extrapolate=extrapolate),
+        )
+        cos = (track.rotations() @ rotations.transpose(1, 2)).diagonal(dim1=1, dim2=2).sum(-1).sub(1).div(2)
+        errors[extrapolate] = float(cos.clamp(-1, 1).arccos()[[0, n - 1]].mean())
+    assert errors[True] < 0.7 * errors[False], errors

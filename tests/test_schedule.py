@@ -29,6 +29,7 @@ def test_which_losses_count_when():
     assert not is_active("motion", Phase.STATIC)
     assert is_active("motion", Phase.DYNAMIC) and is_active("mask_consistency", Phase.DYNAMIC)
     assert not is_active("edi_static", Phase.DYNAMIC) and not is_active("mask_l1", Phase.DYNAMIC)
+    assert not is_active("blur", Phase.POSE_INIT) and is_active("blur", Phase.STATIC) and is_active("blur", Phase.DYNAMIC)
 
 
 def test_ablation_presets_set_switches_and_skip_warmup_without_edi():
@@ -39,5 +40,8 @@ def test_ablation_presets_set_switches_and_skip_warmup_without_edi():
     assert (cfg.schedule.pose_init_iters, cfg.schedule.static_iters) == (0, 12)
     apply_ablation(cfg)  # idempotent
     assert (cfg.schedule.pose_init_iters, cfg.schedule.static_iters) == (0, 12)
+    assert EdygsModelConfig(ablation="full").use_blur_loss and not EdygsModelConfig(ablation="paper").use_blur_loss
+    paper = {k: v for k, v in ABLATIONS["paper"].items() if k != "use_blur_loss"}
+    assert paper == {k: v for k, v in ABLATIONS["full"].items() if k != "use_blur_loss"}
     plain = EdygsModelConfig(use_event_loss=False)
     assert plain.use_event_loss is False and plain.ablation is None

@@ -133,6 +133,9 @@ def test_training_lowers_the_loss_and_resumes_exactly(tiny_scene, tmp_path):
     for name, param in old.gauss_params.items():
         assert torch.equal(param.detach(), new.gauss_params[name].detach()), name
     assert torch.equal(old.static_masks, new.static_masks) and new.static_masks.numel() > 0
+    # the blur loss's render cache continues too: every latent's last render
+    assert old.exposure_cache.filled
+    assert torch.equal(old.exposure_cache.renders, new.exposure_cache.renders)
     assert old.rigid_motion.active
     for name, value in old.rigid_motion.state_dict().items():
         assert torch.equal(value, new.rigid_motion.state_dict()[name]), name
@@ -186,3 +189,33 @@ def test_ns_train_and_ns_render_cli(tiny_scene, tmp_path):
     assert render.returncode == 0, render.stdout[-3000:] + render.stderr[-3000:]
     frames = sorted((tmp_path / "render").glob("*"))
     assert len(frames) == 4, frames
+
+
+def test_blur_loss_sees_the_colour_that_grey_events_miss(tiny_scene, tmp_path):
+    config = tiny_trainer_config(tiny_scene, tmp_path, iters=0, pose_init=3, static=3)
+    trainer = _setup_trainer(config)
+    model, dm = trainer.pipeline.model, trainer.pipeline.datamanager
+    assert model.config.use_blur_loss and model.config.lambda_blur > 0
+    model.train()
+    model.before_step(trainer.optimizers, 0)
+    cameras, batch = dm.next_train(0)
+    assert "blurry" in batch
+    image = batch["image"][..., :3]
+    outputs = {"rgb": image.clone(), "mask": torch.zeros(*image.shape[:-1], 1)}
+    assert "blur" not in model.get_loss_dict(outputs, batch)  # pose-init: EDI latents only
+    model.before_step(trainer.optimizers, 3)
+    assert model.phase is Phase.STATIC
+    # renders equal to the EDI latents average to the blurry frame (EDI keeps the mean): up to
+    # 8-bit rounding and clipping, no blur loss
+    exact = float(model.get_loss_dict(outputs, batch)["blur"]) / model.config.lambda_blur
+    assert exact < 0.01
+    # shift red from one latent of the pair into the other: luma, events and mean brightness of the
+    # pair change alike, and the blur loss stays low; make both redder: the mean is off, it rises
+    shifted = image.clone()
+    shifted[..., 0] = (shifted[..., 0] + 0.3).clamp(max=1.0)
+    off = float(model.get_loss_dict({"rgb": shifted, "mask": outputs["mask"]}, batch)["blur"]) / model.config.lambda_blur
+    assert off > exact + 0.02
+    # the cache now holds the last renders of the pair, so the exposure is completed with them
+    first, second = batch["image_idx"].tolist()
+    assert torch.allclose(model.exposure_cache.renders[first].float(), shifted[0], atol=1e-3)
+    assert torch.allclose(model.exposure_cache.renders[second].float(), shifted[1], atol=1e-3)

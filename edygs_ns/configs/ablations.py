@@ -1,6 +1,8 @@
 """Presets that reproduce the rows of the paper's Table 2 (and the blurry baseline) with one flag.
 
-Each preset sets the model's ablation switches; ``full`` is EDyGS itself.
+Each preset sets the model's ablation switches; ``full`` is EDyGS itself, with our blur-formation
+loss (losses/blur.py), and ``paper`` is EDyGS with exactly the paper's losses (no blur loss). The
+paper's rows below ``full`` have no blur loss either.
 """
 
 from __future__ import annotations
@@ -13,13 +15,14 @@ if TYPE_CHECKING:  # pragma: no cover
 
 #: switch values per preset (fields of EdygsModelConfig).
 ABLATIONS: Dict[str, Dict[str, bool]] = {
-    "events-only": dict(use_edi_loss=False, use_event_loss=True, optimize_poses=False, use_motion_mask=False),
-    "edi-only": dict(use_edi_loss=True, use_event_loss=False, optimize_poses=False, use_motion_mask=False),
-    "edi-events": dict(use_edi_loss=True, use_event_loss=True, optimize_poses=False, use_motion_mask=False),
-    "edi-events-pose": dict(use_edi_loss=True, use_event_loss=True, optimize_poses=True, use_motion_mask=False),
-    "full": dict(use_edi_loss=True, use_event_loss=True, optimize_poses=True, use_motion_mask=True),
+    "events-only": dict(use_edi_loss=False, use_event_loss=True, optimize_poses=False, use_motion_mask=False, use_blur_loss=False),
+    "edi-only": dict(use_edi_loss=True, use_event_loss=False, optimize_poses=False, use_motion_mask=False, use_blur_loss=False),
+    "edi-events": dict(use_edi_loss=True, use_event_loss=True, optimize_poses=False, use_motion_mask=False, use_blur_loss=False),
+    "edi-events-pose": dict(use_edi_loss=True, use_event_loss=True, optimize_poses=True, use_motion_mask=False, use_blur_loss=False),
+    "paper": dict(use_edi_loss=True, use_event_loss=True, optimize_poses=True, use_motion_mask=True, use_blur_loss=False),
+    "full": dict(use_edi_loss=True, use_event_loss=True, optimize_poses=True, use_motion_mask=True, use_blur_loss=True),
     # blurry frames stand in for the EDI latents (the datamanager serves them): Deformable 3DGS
-    "blurry": dict(use_edi_loss=True, use_event_loss=False, optimize_poses=False, use_motion_mask=False),
+    "blurry": dict(use_edi_loss=True, use_event_loss=False, optimize_poses=False, use_motion_mask=False, use_blur_loss=False),
 }
 
 

@@ -2,7 +2,7 @@
 
 One factory builds the trainer config; variants are ``dataclasses.replace`` of its parts.
 Paper ablations (Table 2) are one flag: ``--pipeline.model.ablation {events-only,edi-only,
-edi-events,edi-events-pose,full}``.
+edi-events,edi-events-pose,paper,full}`` (``paper``: EDyGS without our blur loss).
 """
 
 from __future__ import annotations

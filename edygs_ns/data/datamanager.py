@@ -9,7 +9,7 @@ them. Nothing is read from disk or re-binned per iteration.
 Batches (C cameras, H x W pixels)::
 
     pairs      cameras [2]; {"image": float32 [2, H, W, 3] in [0, 1], "event_map": float32 [H, W],
-               "image_idx": long [2]}
+               "image_idx": long [2], "blurry": float32 [1, H, W, 3] in [0, 1], the pair's blurry frame}
     singles    cameras [1]; {"image": float32 [1, H, W, 3], "image_idx": long [1]}
                (pair_events=False, or the blurry-input baseline)
     eval       cameras [1]; {"image": float32 [H, W, 3], "image_idx": int, "motion_mask": float32 [H, W, 1]
@@ -87,12 +87,14 @@ class EdygsDataManager(FullImageDatamanager):
         image_source = getattr(self.dataparser.config, "image_source", "latent")
         self.serves_pairs = bool(config.pair_events and image_source == "latent")
         self.event_maps: Optional[torch.Tensor] = None
+        self.blurry_frames: List[torch.Tensor] = []
         if self.serves_pairs:
             if not self.pairs:
                 raise ValueError(f"{config.dataparser.data}: no two consecutive latents of one exposure in the training split")
             if config.camera_res_scale_factor != 1.0:
                 raise ValueError("pair_events needs camera_res_scale_factor=1 (event maps are not resampled)")
             self.event_maps = meta["event_maps"].to(device=self.device, dtype=torch.float32)
+            self.blurry_frames = self._load_blurry(meta.get("blurry_filenames") or [])
         self._pair_rng = random.Random(config.train_cameras_sampling_seed)
         times = self.train_cameras.times
         self._train_times: List[float] = times.reshape(-1).tolist() if times is not None else [0.0] * len(self.train_cameras)
@@ -134,6 +136,19 @@ class EdygsDataManager(FullImageDatamanager):
                     data["image"] = data["image"].pin_memory()
                 cached.append(data)
         return cached
+
+    def _load_blurry(self, files: List) -> List[torch.Tensor]:
+        """Every blurry frame once, float32 [H, W, 3] in [0, 1] on the training device (the blur
+        loss's targets); they must have the training images' size."""
+        height, width = int(self.train_cameras.height[0]), int(self.train_cameras.width[0])
+        frames = []
+        for path in files:
+            with Image.open(path) as img:
+                if (img.height, img.width) != (height, width):
+                    raise ValueError(f"{path}: blurry frame is {(img.height, img.width)} (H, W) but the latents are {(height, width)}")
+                rgb = np.asarray(img.convert("RGB"), dtype=np.float32) / UINT8_MAX
+            frames.append(torch.from_numpy(rgb).to(self.device))
+        return frames
 
     # -- training -------------------------------------------------------------------------------
 
@@ -191,6 +206,9 @@ class EdygsDataManager(FullImageDatamanager):
             "event_map": self.event_maps[int(self.blurry_index[first]), int(self.latent_index[first])],
             "image_idx": indices.to(self.device),
         }
+        exposure = int(self.blurry_index[first])
+        if 0 <= exposure < len(self.blurry_frames):
+            batch["blurry"] = self.blurry_frames[exposure][None]
         return cameras, batch
 
     # -- evaluation -----------------------------------------------------------------------------

@@ -21,11 +21,13 @@ from nerfstudio.models.base_model import ModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from edygs_ns.events.color import decode_to_linear
+from edygs_ns.losses.blur import blur_loss
 from edygs_ns.losses.events import DEFAULT_LOG_EPS, event_loss
 from edygs_ns.losses.photometric import l1_dssim, latent_confidence
 from edygs_ns.losses.regularizers import mask_consistency, mask_l1, motion_loss
 from edygs_ns.model.appearance import MAX_SH_DEGREE, sh_to_rgb
 from edygs_ns.model.deformation import DeformationConfig, DeformationField, RigidMotion
+from edygs_ns.model.exposure_cache import NO_EXPOSURE, ExposureCache
 from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig, evidence_track, fit_motion, motion_evidence, seed_gaussians
 from edygs_ns.model.rigid_track import RigidTrackConfig, coverage_seeds, track_rigid
 from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES, init_gaussians, seed_tensors
@@ -97,6 +99,10 @@ class EdygsModelConfig(ModelConfig):
     (losses/photometric.py: latent_confidence); 0 weighs every latent alike (the paper). Built-in
     scene, seed 0, 1500 CPU iterations (densify.grow_grad2d 2e-4): a = 0 / 2 / 8 gave input-view PSNR
     27.55 / 27.79 / 27.54"""
+    lambda_blur: float = 24.0
+    """weight of the blur-formation loss |mean of an exposure's latent renders − its blurry frame|
+    (losses/blur.py; not in the paper): the only per-colour-channel supervision, against EDI's colour
+    distortion. The pair's other latents come from a cache of their last renders"""
     lambda_event: float = 0.5
     """weight of the event loss between consecutive latent renders"""
     lambda_mask: float = 0.15
@@ -113,6 +119,8 @@ class EdygsModelConfig(ModelConfig):
     """ablation switch: supervise with the EDI latent images"""
     use_event_loss: bool = True
     """ablation switch: supervise with the events between consecutive latents"""
+    use_blur_loss: bool = True
+    """switch of the blur-formation loss (``lambda_blur``; not in the paper)"""
     optimize_poses: bool = True
     """ablation switch: refine the per-latent camera poses"""
     use_motion_mask: bool = True
@@ -127,9 +135,10 @@ class EdygsModelConfig(ModelConfig):
     detach_mask_in_motion_loss: bool = True
     """the motion loss uses m as given by the mask field (no gradient into m), so it cannot be
     lowered by calling static Gaussians dynamic"""
-    ablation: Optional[Literal["events-only", "edi-only", "edi-events", "edi-events-pose", "full", "blurry"]] = None
+    ablation: Optional[Literal["events-only", "edi-only", "edi-events", "edi-events-pose", "paper", "full", "blurry"]] = None
     """one-flag preset of the switches above reproducing a row of the paper's Table 2
-    (configs/ablations.py); None keeps the switches as given"""
+    ("paper": EDyGS with the paper's losses only, "full": EDyGS with the blur loss; configs/ablations.py);
+    None keeps the switches as given"""
 
     def __post_init__(self) -> None:
         from edygs_ns.configs.ablations import apply_ablation
@@ -176,6 +185,10 @@ class EdygsModel(SplatExportView):
         self.register_buffer(
             "edi_weights", latent_confidence(latent_index, int(metadata.get("k", 1)), self.config.edi_centre_weighting), persistent=False
         )
+        blurry_index = metadata.get("blurry_index")
+        if blurry_index is None or len(blurry_index) != self.num_train_data:
+            blurry_index = torch.full((self.num_train_data,), NO_EXPOSURE, dtype=torch.long)
+        self.exposure_cache = ExposureCache(blurry_index)
         self.strategy = make_strategy(self.config.densify)
         self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
         # motion masks M̂ rendered at the end of the static phase, one per training latent [N, H, W]
@@ -211,6 +224,7 @@ class EdygsModel(SplatExportView):
                 param = self.gauss_params[name]
                 param.data = torch.zeros(state_dict[key].shape, dtype=param.dtype, device=param.device)
         self.rigid_motion.prepare_load(state_dict, "rigid_motion.")
+        self.exposure_cache.prepare_load(state_dict, "exposure_cache.")
         if "static_masks" in state_dict:
             self.static_masks = torch.zeros_like(state_dict["static_masks"], device=self.static_masks.device)
         return super().load_state_dict(state_dict, strict=strict)
@@ -484,6 +498,8 @@ class EdygsModel(SplatExportView):
             linear = decode_to_linear(rgb, self.color_space)
             event_map = batch["event_map"].to(self.device).float()
             losses["event"] = cfg.lambda_event * event_loss(linear[0], linear[1], event_map, self.theta, cfg.event_log_eps)
+        if cfg.use_blur_loss and cfg.lambda_blur > 0 and is_active("blur", phase) and "blurry" in batch and indices is not None:
+            losses["blur"] = cfg.lambda_blur * self._blur_term(rgb, indices, batch["blurry"])
         if cfg.use_motion_mask and is_active("mask_l1", phase):
             losses["mask_l1"] = cfg.lambda_mask * mask_l1(mask)
         if cfg.use_motion_mask and is_active("mask_consistency", phase) and self.static_masks.numel() > 0:
@@ -502,6 +518,21 @@ class EdygsModel(SplatExportView):
             # a phase with no active term (e.g. an ablation) still needs a differentiable zero
             losses["none"] = rgb.sum() * 0.0
         return losses
+
+    def _blur_term(self, rgb: Tensor, indices: Tensor, blurry: Tensor) -> Tensor:
+        """Blur loss of the batch's exposure, completed from the render cache (which it updates)."""
+        linear = decode_to_linear(rgb, self.color_space)
+        cache = self.exposure_cache
+        if not cache.filled:
+            if self._train_image is None:
+                raise RuntimeError("the blur loss needs the datamanager's train_image (get_training_callbacks)")
+            cache.fill(lambda i: decode_to_linear(self._train_image(i)[..., :3].to(self.device), self.color_space))
+        stacks = cache.complete(indices, linear)
+        cache.store(indices, linear)
+        target = decode_to_linear(blurry.to(self.device).float().reshape(-1, *rgb.shape[-3:]), self.color_space)
+        if target.shape[0] != len(stacks):
+            raise ValueError(f"the batch has {target.shape[0]} blurry frames for {len(stacks)} exposures")
+        return blur_loss(torch.stack(list(stacks.values())), target)
 
     def _batch_indices(self, batch, rgb: Tensor) -> Optional[Tensor]:
         if "image_idx" not in batch:

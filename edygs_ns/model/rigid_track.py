@@ -58,6 +58,11 @@ class RigidTrackConfig:
     """opacity of the seeds while tracking (an object hides what is behind it)"""
     region_dilation: int = 5
     """the loss counts pixels within this many pixels of the latent's motion evidence"""
+    extrapolate: bool = False
+    """start each latent's fit from the motion extrapolated at the last two latents' velocity
+    (constant velocity in normalised time) instead of the neighbour's fit. It keeps up with a fast
+    spin in few steps (tests/test_rigid_track.py), but on the built-in scene (seed 0, 3000 CPU
+    iterations, lambda_blur 12) it gave 29.25 dB input-view PSNR against 29.57 without"""
 
 
 @dataclass
@@ -157,13 +162,22 @@ def track_rigid(
         composite = out.render[0] + (1.0 - out.alpha[0]) * backgrounds[i]
         return (composite - latent(i)).abs()[regions[i]].mean()
 
+    before: dict = {}  # latent -> the neighbour it was started from
     with torch.enable_grad():
         for i, prev in visiting_order(times, ref):
+            before[i] = prev
             if not bool(regions[i].any()):
                 rotvecs[i], units[i] = rotvecs[prev], units[prev]
                 continue
-            rotvec = rotvecs[prev].clone().requires_grad_(True)
-            unit = units[prev].clone().requires_grad_(True)
+            rotvec, unit = rotvecs[prev].clone(), units[prev].clone()
+            if config.extrapolate and prev in before:
+                pp = before[prev]
+                step_prev = float(times[prev] - times[pp])
+                scale = float(times[i] - times[prev]) / step_prev if step_prev != 0.0 else 0.0
+                rotvec = rotvec + scale * (rotvecs[prev] - rotvecs[pp])
+                unit = unit + scale * (units[prev] - units[pp])
+            rotvec.requires_grad_(True)
+            unit.requires_grad_(True)
             optimizer = torch.optim.Adam(
                 [{"params": [rotvec], "lr": config.lr_rotation}, {"params": [unit], "lr": config.lr_translation}]
             )

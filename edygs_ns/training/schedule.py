@@ -3,8 +3,9 @@
 1. ``POSE_INIT``: fit the Gaussians to the EDI latents at the initial poses; mask, poses and
    deformation frozen.
 2. ``STATIC``: static region + motion-mask field + camera poses (event, EDI with the static
-   term, mask L1).
-3. ``DYNAMIC``: deformation on; mask and poses refined (motion loss, mask consistency).
+   term, mask L1, and our blur-formation loss).
+3. ``DYNAMIC``: deformation on; mask and poses refined (motion loss, mask consistency; event,
+   EDI and blur losses go on).
 
 What trains and which losses count in each phase is decided here and nowhere else.
 """
@@ -38,8 +39,8 @@ TRAINABLE: Dict[Phase, FrozenSet[str]] = {
 #: loss terms that are active in each phase (their weights live in the model config).
 ACTIVE_LOSSES: Dict[Phase, FrozenSet[str]] = {
     Phase.POSE_INIT: frozenset({"edi"}),
-    Phase.STATIC: frozenset({"edi", "edi_static", "event", "mask_l1"}),
-    Phase.DYNAMIC: frozenset({"edi", "event", "mask_consistency", "motion"}),
+    Phase.STATIC: frozenset({"edi", "edi_static", "event", "blur", "mask_l1"}),
+    Phase.DYNAMIC: frozenset({"edi", "event", "blur", "mask_consistency", "motion"}),
 }
 
 

@@ -1,0 +1,89 @@
+"""The latest render of every training latent, to complete an exposure for the blur loss.
+
+A training step renders two latents of one exposure; the blur loss needs all k. The other k − 2
+come from this cache: each latent's render from the last step that drew it (no gradient), or its
+training image (the EDI latent) until it was first drawn. The cache adds no render to a step.
+The cache is a buffer of the model (float16, [N, H, W, 3] linear intensity), so a resumed run continues with the same
+cache.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Dict, List
+
+import torch
+from torch import Tensor, nn
+
+#: Marks cameras that belong to no exposure (novel views).
+NO_EXPOSURE = -1
+
+
+class ExposureCache(nn.Module):
+    """Stale renders of the training latents, grouped by exposure."""
+
+    def __init__(self, blurry_index: Tensor) -> None:
+        """Args:
+            blurry_index: long [N], the exposure of each training camera (-1: none).
+        """
+        super().__init__()
+        self.register_buffer("blurry_index", blurry_index.reshape(-1).long().clone(), persistent=False)
+        self.register_buffer("renders", torch.zeros(0, 0, 0, 3, dtype=torch.float16))
+
+    @property
+    def filled(self) -> bool:
+        return self.renders.shape[0] == self.blurry_index.shape[0]
+
+    def members(self, exposure: int) -> Tensor:
+        """long [K]: the training cameras of ``exposure`` in camera order (= time order)."""
+        return torch.nonzero(self.blurry_index == exposure).reshape(-1).to(self.renders.device)
+
+    @torch.no_grad()
+    def fill(self, image: Callable[[int], Tensor]) -> None:
+        """Start every entry at ``image(i)``: [H, W, 3] linear training image of camera i."""
+        first = image(0)
+        renders = torch.empty(len(self.blurry_index), *first.shape, dtype=torch.float16, device=first.device)
+        for i in range(len(self.blurry_index)):
+            renders[i] = image(i)
+        self.renders = renders
+
+    def prepare_load(self, state_dict: dict, prefix: str) -> None:
+        """Before ``load_state_dict``: resize the buffer to the checkpoint's; a checkpoint from
+        before the cache existed gets the empty one (filled at the next blur-loss step)."""
+        for name, value in self.state_dict().items():
+            state_dict.setdefault(prefix + name, value)
+        self.renders = torch.zeros_like(state_dict[prefix + "renders"], device=self.renders.device)
+
+    def complete(self, indices: Tensor, live: Tensor) -> Dict[int, Tensor]:
+        """The full latent stacks of the exposures the batch touches.
+
+        Args:
+            indices: long [B] training cameras of the batch.
+            live: [B, H, W, 3] their renders (linear, with gradient).
+
+        Returns:
+            exposure -> [K, H, W, 3] stack (in first-seen order): the live renders at their places,
+            the cached ones elsewhere.
+        """
+        if not self.filled:
+            raise RuntimeError("ExposureCache.complete before fill")
+        stacks: Dict[int, Tensor] = {}
+        exposures = self.blurry_index[indices.to(self.blurry_index.device)].tolist()
+        for exposure in self.exposures(indices):
+            members = self.members(exposure)
+            stack = self.renders[members].to(live.dtype)
+            for b, i in enumerate(indices.tolist()):
+                if exposures[b] == exposure:
+                    place = int(torch.nonzero(members == i)[0])
+                    stack = torch.cat([stack[:place], live[b : b + 1], stack[place + 1 :]])
+            stacks[exposure] = stack
+        return stacks
+
+    @torch.no_grad()
+    def store(self, indices: Tensor, live: Tensor) -> None:
+        """Remember the batch's renders [B, H, W, 3]."""
+        self.renders[indices.to(self.renders.device)] = live.detach().to(self.renders.dtype)
+
+    def exposures(self, indices: Tensor) -> List[int]:
+        """The exposures the batch touches, in the order :meth:`complete` returns them."""
+        exposures = self.blurry_index[indices.to(self.blurry_index.device)].tolist()
+        return [e for e in dict.fromkeys(exposures) if e != NO_EXPOSURE]
