@@ -102,7 +102,9 @@ class EdygsModelConfig(ModelConfig):
     lambda_blur: float = 24.0
     """weight of the blur-formation loss |mean of an exposure's latent renders − its blurry frame|
     (losses/blur.py; not in the paper): the only per-colour-channel supervision, against EDI's colour
-    distortion. The pair's other latents come from a cache of their last renders"""
+    distortion. The pair's other latents come from a cache of their last renders. Built-in scene,
+    seed 0, 3000 CPU iterations: 1 / 3 / 6 / 12 / 24 gave input-view PSNR 28.33 / 28.74 / 29.32 /
+    29.57 / 30.26; more weight also grows more Gaussians (74k at 24, 42k at 12)"""
     lambda_event: float = 0.5
     """weight of the event loss between consecutive latent renders"""
     lambda_mask: float = 0.15
