@@ -496,12 +496,12 @@ class EdygsModel(SplatExportView):
             losses["edi"] = cfg.lambda_edi * l1_dssim(rgb, gt, cfg.ssim_lambda, image_weights=weights)
         if cfg.use_edi_loss and cfg.use_motion_mask and is_active("edi_static", phase):
             losses["edi_static"] = cfg.lambda_edi_static * l1_dssim(rgb, gt, cfg.ssim_lambda, weight=1.0 - mask, image_weights=weights)
+        linear = decode_to_linear(rgb, self.color_space)
         if cfg.use_event_loss and is_active("event", phase) and "event_map" in batch and rgb.dim() == 4 and rgb.shape[0] == 2:
-            linear = decode_to_linear(rgb, self.color_space)
             event_map = batch["event_map"].to(self.device).float()
             losses["event"] = cfg.lambda_event * event_loss(linear[0], linear[1], event_map, self.theta, cfg.event_log_eps)
         if cfg.use_blur_loss and cfg.lambda_blur > 0 and is_active("blur", phase) and "blurry" in batch and indices is not None:
-            losses["blur"] = cfg.lambda_blur * self._blur_term(rgb, indices, batch["blurry"])
+            losses["blur"] = cfg.lambda_blur * self._blur_term(linear, indices, batch["blurry"])
         if cfg.use_motion_mask and is_active("mask_l1", phase):
             losses["mask_l1"] = cfg.lambda_mask * mask_l1(mask)
         if cfg.use_motion_mask and is_active("mask_consistency", phase) and self.static_masks.numel() > 0:
@@ -521,9 +521,9 @@ class EdygsModel(SplatExportView):
             losses["none"] = rgb.sum() * 0.0
         return losses
 
-    def _blur_term(self, rgb: Tensor, indices: Tensor, blurry: Tensor) -> Tensor:
-        """Blur loss of the batch's exposure, completed from the render cache (which it updates)."""
-        linear = decode_to_linear(rgb, self.color_space)
+    def _blur_term(self, linear: Tensor, indices: Tensor, blurry: Tensor) -> Tensor:
+        """Blur loss of the batch's exposure (renders in linear intensity), completed from the
+        render cache (which it updates)."""
         cache = self.exposure_cache
         if not cache.filled:
             if self._train_image is None:
@@ -531,7 +531,7 @@ class EdygsModel(SplatExportView):
             cache.fill(lambda i: decode_to_linear(self._train_image(i)[..., :3].to(self.device), self.color_space))
         stacks = cache.complete(indices, linear)
         cache.store(indices, linear)
-        target = decode_to_linear(blurry.to(self.device).float().reshape(-1, *rgb.shape[-3:]), self.color_space)
+        target = decode_to_linear(blurry.to(self.device).float().reshape(-1, *linear.shape[-3:]), self.color_space)
         if target.shape[0] != len(stacks):
             raise ValueError(f"the batch has {target.shape[0]} blurry frames for {len(stacks)} exposures")
         return blur_loss(torch.stack(list(stacks.values())), target)

@@ -28,14 +28,20 @@ class ExposureCache(nn.Module):
         super().__init__()
         self.register_buffer("blurry_index", blurry_index.reshape(-1).long().clone(), persistent=False)
         self.register_buffer("renders", torch.zeros(0, 0, 0, 3, dtype=torch.float16))
+        # fixed at set-up, kept on the host: the exposure of each camera and each exposure's cameras
+        self._exposure_of: List[int] = self.blurry_index.tolist()
+        self._members: Dict[int, List[int]] = {}
+        for camera, exposure in enumerate(self._exposure_of):
+            if exposure != NO_EXPOSURE:
+                self._members.setdefault(exposure, []).append(camera)
 
     @property
     def filled(self) -> bool:
         return self.renders.shape[0] == self.blurry_index.shape[0]
 
-    def members(self, exposure: int) -> Tensor:
-        """long [K]: the training cameras of ``exposure`` in camera order (= time order)."""
-        return torch.nonzero(self.blurry_index == exposure).reshape(-1).to(self.renders.device)
+    def members(self, exposure: int) -> List[int]:
+        """The training cameras of ``exposure`` in camera order (= time order)."""
+        return self._members[exposure]
 
     @torch.no_grad()
     def fill(self, image: Callable[[int], Tensor]) -> None:
@@ -66,16 +72,14 @@ class ExposureCache(nn.Module):
         """
         if not self.filled:
             raise RuntimeError("ExposureCache.complete before fill")
+        batch = indices.tolist()
         stacks: Dict[int, Tensor] = {}
-        exposures = self.blurry_index[indices.to(self.blurry_index.device)].tolist()
         for exposure in self.exposures(indices):
             members = self.members(exposure)
-            stack = self.renders[members].to(live.dtype)
-            for b, i in enumerate(indices.tolist()):
-                if exposures[b] == exposure:
-                    place = int(torch.nonzero(members == i)[0])
-                    stack = torch.cat([stack[:place], live[b : b + 1], stack[place + 1 :]])
-            stacks[exposure] = stack
+            rows = [b for b, i in enumerate(batch) if self._exposure_of[i] == exposure]
+            places = torch.tensor([members.index(batch[b]) for b in rows], device=live.device)
+            cached = self.renders[torch.tensor(members, device=self.renders.device)].to(live.dtype)
+            stacks[exposure] = cached.index_put((places,), live[torch.tensor(rows, device=live.device)])
         return stacks
 
     @torch.no_grad()
@@ -85,5 +89,5 @@ class ExposureCache(nn.Module):
 
     def exposures(self, indices: Tensor) -> List[int]:
         """The exposures the batch touches, in the order :meth:`complete` returns them."""
-        exposures = self.blurry_index[indices.to(self.blurry_index.device)].tolist()
+        exposures = [self._exposure_of[i] for i in indices.tolist()]
         return [e for e in dict.fromkeys(exposures) if e != NO_EXPOSURE]
