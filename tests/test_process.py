@@ -29,8 +29,8 @@ from edygs_ns.scripts.synth import SynthConfig, write_synthetic_scene
 TINY = dict(width=160, height=120, n_frames=6, k=3, supersample=1, sim_steps_per_exposure=8, n_subframes=5, novel_stride=3)
 K = TINY["k"]
 STEPS = ["read", "edi", "poses", "write"]
-#: Single-threaded COLMAP is repeatable (multi-threaded runs differ slightly from run to run).
-COLMAP = ColmapConfig(num_threads=1)
+#: COLMAP at its defaults (one thread: repeatable; multi-threaded runs differ from run to run).
+COLMAP = ColmapConfig()
 TRANSFORMS_KEYS = {"w", "h", "fl_x", "fl_y", "cx", "cy", "camera_model", "k", "theta", "color_space", "event_maps",
                    "ply_file_path", "exposures", "pose_source", "frames"}
 FRAME_KEYS = {"file_path", "transform_matrix", "time", "time_us", "blurry_index", "latent_index", "blurry_file_path"}
@@ -119,6 +119,15 @@ def test_form_b_colmap_registers_and_poses_match_ground_truth(raw: Path, tmp_pat
     u, v, depth = _project(xyz.astype(np.float64), est[len(est) // 2], meta)
     inside = (depth > 0) & (u >= 0) & (u < meta["w"]) & (v >= 0) & (v < meta["h"])
     assert inside.mean() > 0.5
+
+
+def test_colmap_at_its_defaults_repeats_exactly(raw: Path, tmp_path: Path) -> None:
+    """Two runs of the same capture write the same poses and points, byte for byte."""
+    assert ColmapConfig().num_threads == 1
+    for name in ("a", "b"):
+        process(_config(tmp_path / name, raw))
+    for file in ("transforms.json", "sparse_pc.ply"):
+        assert (tmp_path / "a" / file).read_bytes() == (tmp_path / "b" / file).read_bytes(), file
 
 
 def _write_aedat4(raw: Path, path: Path) -> None:
