@@ -154,3 +154,22 @@ def test_statistics_come_from_the_cpu_rasteriser() -> None:
 def test_absgrad_is_rejected() -> None:
     with pytest.raises(ValueError, match="absgrad"):
         make_strategy(DensifyConfig(absgrad=True))
+
+
+def test_blur_loss_raises_the_grow_threshold() -> None:
+    """A screen-space gradient between grow_grad2d and grow_grad2d_blur grows a Gaussian only
+    while the blur-formation loss is off."""
+    cfg = config()
+    between = (cfg.grow_grad2d + cfg.grow_grad2d_blur) / 2 / (IMAGE / 2)  # pixels -> NDC in between
+    grown = {}
+    for blur in (False, True):
+        params = make_params()
+        optimizers = make_optimizers(params)
+        strategy = make_strategy(cfg, blur_loss=blur)
+        state = strategy.initialize_state(scene_scale=1.0)
+        info = fake_info(4, torch.tensor([True, False, False, False]))
+        info["means2d"].grad[0, 0, 0] = between
+        strategy.step_post_backward(params, optimizers, state, REFINE_STEP, info)
+        record = state[LAST_REFINE_KEY]
+        grown[blur] = record["duplicated"] + record["split"]
+    assert grown == {False: 1, True: 0}

@@ -196,6 +196,8 @@ def test_blur_loss_sees_the_colour_that_grey_events_miss(tiny_scene, tmp_path):
     trainer = _setup_trainer(config)
     model, dm = trainer.pipeline.model, trainer.pipeline.datamanager
     assert model.config.use_blur_loss and model.config.lambda_blur > 0
+    # its gradient joins the densification statistic, so Gaussians grow above the blur threshold
+    assert model.strategy.grow_grad2d == model.config.densify.grow_grad2d_blur > model.config.densify.grow_grad2d
     model.train()
     model.before_step(trainer.optimizers, 0)
     cameras, batch = dm.next_train(0)

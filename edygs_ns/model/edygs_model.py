@@ -99,12 +99,14 @@ class EdygsModelConfig(ModelConfig):
     (losses/photometric.py: latent_confidence); 0 weighs every latent alike (the paper). Built-in
     scene, seed 0, 1500 CPU iterations (densify.grow_grad2d 2e-4): a = 0 / 2 / 8 gave input-view PSNR
     27.55 / 27.79 / 27.54"""
-    lambda_blur: float = 24.0
+    lambda_blur: float = 48.0
     """weight of the blur-formation loss |mean of an exposure's latent renders − its blurry frame|
     (losses/blur.py; not in the paper): the only per-colour-channel supervision, against EDI's colour
     distortion. The pair's other latents come from a cache of their last renders. Built-in scene,
-    seed 0, 3000 CPU iterations: 1 / 3 / 6 / 12 / 24 gave input-view PSNR 28.33 / 28.74 / 29.32 /
-    29.57 / 30.26; more weight also grows more Gaussians (74k at 24, 42k at 12)"""
+    seed 0, 3000 CPU iterations, densify.grow_grad2d 7e-4: 1 / 3 / 6 / 12 / 24 gave input-view PSNR
+    28.33 / 28.74 / 29.32 / 29.57 / 30.26, growing ever more Gaussians (42k at 12, 74k at 24). With
+    the blur loss's own grow threshold (densify.grow_grad2d_blur), on another processing of that
+    scene: 24 at 1.4e-3 gave 29.70 (30k Gaussians), 48 at 2e-3 gave 29.83 (39k)"""
     lambda_event: float = 0.5
     """weight of the event loss between consecutive latent renders"""
     lambda_mask: float = 0.15
@@ -191,7 +193,7 @@ class EdygsModel(SplatExportView):
         if blurry_index is None or len(blurry_index) != self.num_train_data:
             blurry_index = torch.full((self.num_train_data,), NO_EXPOSURE, dtype=torch.long)
         self.exposure_cache = ExposureCache(blurry_index)
-        self.strategy = make_strategy(self.config.densify)
+        self.strategy = make_strategy(self.config.densify, blur_loss=self.config.use_blur_loss)
         self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
         # motion masks M̂ rendered at the end of the static phase, one per training latent [N, H, W]
         self.register_buffer("static_masks", torch.zeros(0, 0, 0, dtype=torch.float16))
