@@ -69,7 +69,7 @@ class ColmapConfig:
     """CPU threads (-1: all). One thread makes the poses and points repeat exactly from run to run:
     with all threads, matching and mapping come out in a different order and the built-in scene's
     reconstruction differed between runs (562 against 536 points), which moved input-view PSNR by
-    up to 0.7 dB. Two single-threaded runs wrote identical transforms.json and sparse_pc.ply; on the
+    up to 0.8 dB. Two single-threaded runs wrote identical transforms.json and sparse_pc.ply; on the
     built-in scene it takes 16 s. Use -1 for large real captures."""
     init_min_num_inliers: int = 50
     """Inlier matches the mapper's initial image pair needs. COLMAP's default (100) is tuned for
