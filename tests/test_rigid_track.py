@@ -177,3 +177,23 @@ def test_extrapolated_starts_keep_up_with_a_fast_spin():
         cos = (track.rotations() @ rotations.transpose(1, 2)).diagonal(dim1=1, dim2=2).sum(-1).sub(1).div(2)
         errors[extrapolate] = float(cos.clamp(-1, 1).arccos()[[0, n - 1]].mean())
     assert errors[True] < 0.7 * errors[False], errors
+
+
+def test_silhouette_term_tracks_an_object_its_colours_cannot_place():
+    # the ball has the background's colour: the colour L1 is flat wherever the seeds go, so only the
+    # motion evidence (the silhouette) can say where the ball is
+    points, _, radii, _, translations, Ks, viewmats, _, evidence, background = _scene()
+    ref, n = 3, evidence.shape[0]
+    visible = points[:, 2] < CENTRE[2] - 0.1 * RADIUS
+    grey = background[0, 0].expand(int(visible.sum()), 3).contiguous()
+    errors = {}
+    for weight in (0.0, 1.0):
+        track = track_rigid(
+            points[visible], grey, radii[visible], CENTRE, torch.linspace(0, 1, n), evidence,
+            lambda i: background, background.expand(n, H, W, 3), viewmats, Ks, ref, rasterize_torch,
+            RigidTrackConfig(steps=40, silhouette_weight=weight),
+        )
+        errors[weight] = float((track.translations - translations)[:, :2].norm(dim=-1)[[0, n - 1]].mean())
+    true_shift = float(translations[[0, n - 1], :2].norm(dim=-1).mean())
+    assert errors[0.0] > 0.9 * true_shift, errors  # no colour cue: the track stays where it started
+    assert errors[1.0] < 0.3 * true_shift, (errors, true_shift)

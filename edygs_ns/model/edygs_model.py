@@ -353,7 +353,7 @@ class EdygsModel(SplatExportView):
             turn = float(track.rotvecs.norm(dim=-1).max())
             message += (
                 f" + {len(extra.points)} coverage seeds; rigid track on {len(times)} latents"
-                f" (turns up to {turn * 180.0 / torch.pi:.0f}°, L1 {float(track.loss.mean()):.4f})"
+                f" (turns up to {turn * 180.0 / torch.pi:.0f}°, fit loss {float(track.loss.mean()):.4f})"
                 + ("; it is the base motion of the deformation" if self.config.rigid_track.as_base_motion else "")
             )
             fit_times = times
