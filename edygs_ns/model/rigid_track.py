@@ -165,19 +165,22 @@ def track_rigid(
     opacities = torch.full((len(points),), config.opacity, device=device)
     height, width = backgrounds.shape[1:3]
     size_px = 2 * config.region_dilation + 1
-    regions = torch.nn.functional.max_pool2d(evidence[:, None].float(), size_px, stride=1, padding=config.region_dilation)[:, 0] > 0.5
+    outlines = evidence.float()
+    regions = torch.nn.functional.max_pool2d(outlines[:, None], size_px, stride=1, padding=config.region_dilation)[:, 0] > 0.5
 
-    def render_loss(i: int, rotvec: Tensor, unit: Tensor) -> Tensor:
+    def render_loss(i: int, rotvec: Tensor, unit: Tensor, target: Tensor) -> Tensor:
+        """Fit loss of latent i (RGB ``target``) for the transform (rotvec, unit)."""
         moved = rigid_apply(points, centre, rotation_matrices(rotvec[None]), (unit * size)[None])[0]
         out = backend(moved, quats, scales, opacities, colors, viewmats[i : i + 1], Ks[i : i + 1], width, height)
         composite = out.render[0] + (1.0 - out.alpha[0]) * backgrounds[i]
-        loss = (composite - latent(i)).abs()[regions[i]].mean()
+        loss = (composite - target).abs()[regions[i]].mean()
         if config.silhouette_weight > 0:
             # the seeds are only the part the reference latent saw: turned, their outline would no
-            # longer be the object's, so the silhouette places the unturned seeds (translation only)
+            # longer be the object's, so the silhouette places the unturned seeds (translation only);
+            # only alpha is read, so one feature channel is composited
             shifted = points + (unit * size)[None]
-            alpha = backend(shifted, quats, scales, opacities, colors, viewmats[i : i + 1], Ks[i : i + 1], width, height).alpha[0, ..., 0]
-            loss = loss + config.silhouette_weight * (alpha - evidence[i].float())[regions[i]].abs().mean()
+            alpha = backend(shifted, quats, scales, opacities, colors[:, :1], viewmats[i : i + 1], Ks[i : i + 1], width, height).alpha[0, ..., 0]
+            loss = loss + config.silhouette_weight * (alpha - outlines[i])[regions[i]].abs().mean()
         return loss
 
     before: dict = {}  # latent -> the neighbour it was started from
@@ -199,15 +202,16 @@ def track_rigid(
             optimizer = torch.optim.Adam(
                 [{"params": [rotvec], "lr": config.lr_rotation}, {"params": [unit], "lr": config.lr_translation}]
             )
+            target = latent(i)  # once per latent, not per step
             for _ in range(config.steps):
-                loss = render_loss(i, rotvec, unit)
+                loss = render_loss(i, rotvec, unit, target)
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
             rotvecs[i], units[i] = rotvec.detach(), unit.detach()
     with torch.no_grad():
         for i in range(n):
-            losses[i] = render_loss(i, rotvecs[i], units[i]) if bool(regions[i].any()) else 0.0
+            losses[i] = render_loss(i, rotvecs[i], units[i], latent(i)) if bool(regions[i].any()) else 0.0
     return RigidTrack(centre=centre, rotvecs=rotvecs, translations=units * size, loss=losses)
 
 
