@@ -157,8 +157,8 @@ def test_rigid_motion_moves_and_turns_what_is_within_reach_and_interpolates_in_t
     # the track is trainable: a loss on the moved centres reaches the rotation and the shift
     moved, _ = motion(means, quats, 0.75)
     moved.sum().backward()
-    assert motion.rotvecs.grad is not None and motion.rotvecs.grad[2].abs().sum() > 0  # stored by time: 0, 0.5, 1
-    assert motion.shifts.grad[0].abs().sum() == 0  # t = 0 is not involved at t = 0.75
+    assert motion.rotvecs.grad is not None and motion.rotvecs.grad[0, 2].abs().sum() > 0  # stored by time: 0, 0.5, 1
+    assert motion.shifts.grad[0, 0].abs().sum() == 0  # t = 0 is not involved at t = 0.75
 
 
 def test_extrapolated_starts_keep_up_with_a_fast_spin():
@@ -197,3 +197,25 @@ def test_silhouette_term_tracks_an_object_its_colours_cannot_place():
     true_shift = float(translations[[0, n - 1], :2].norm(dim=-1).mean())
     assert errors[0.0] > 0.9 * true_shift, errors  # no colour cue: the track stays where it started
     assert errors[1.0] < 0.3 * true_shift, (errors, true_shift)
+
+
+def test_rigid_bodies_each_move_what_is_nearest_to_them():
+    from edygs_ns.model.deformation import RigidMotion
+
+    motion = RigidMotion(2, bodies=3)
+    times = torch.tensor([0.0, 1.0])
+    zero = torch.zeros(2, 3)
+    motion.set(torch.tensor([0.0, 0.0, 3.0]), 0.5, 0.2, times, zero, torch.tensor([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]]), body=0)
+    motion.set(torch.tensor([1.0, 0.0, 3.0]), 0.5, 0.2, times, zero, torch.tensor([[0.0, 0.0, 0.0], [0.0, -0.2, 0.0]]), body=1)
+    means = torch.tensor([[0.1, 0.0, 3.0], [0.9, 0.0, 3.0], [0.5, 2.0, 3.0]])  # near body 0, near body 1, in no reach
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(3, 1)
+    d_xyz, _ = motion(means, quats, 1.0)
+    assert torch.allclose(d_xyz, torch.tensor([[0.3, 0.0, 0.0], [0.0, -0.2, 0.0], [0.0, 0.0, 0.0]]))
+    assert motion.reach[2] == 0  # the third body was never set: it moves nothing
+    # a single-body checkpoint (rotvecs [N, 3]) loads as body 0
+    single = {"rotvecs": torch.ones(2, 3), "shifts": torch.ones(2, 3), "centre": torch.ones(3), "reach": torch.tensor(1.0),
+              "size": torch.tensor(2.0), "times": times}
+    loaded = RigidMotion(2, bodies=3)
+    loaded.prepare_load(single, "")
+    loaded.load_state_dict(single)
+    assert torch.equal(loaded.rotvecs[0], torch.ones(2, 3)) and float(loaded.reach[0]) == 1.0 and float(loaded.reach[1]) == 0.0

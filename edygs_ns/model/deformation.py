@@ -82,16 +82,16 @@ class DeformationField(nn.Module):
         return self.head_xyz(h), self.head_rot(h), self.head_scale(h)
 
 
-def quat_from_rotvec(rotvec: Float[Tensor, "3"]) -> Float[Tensor, "4"]:
-    """Unit quaternion (w, x, y, z) of an axis-angle vector (radians); differentiable at zero."""
-    angle = (rotvec.square().sum() + 1e-24).sqrt()
+def quat_from_rotvec(rotvec: Float[Tensor, "... 3"]) -> Float[Tensor, "... 4"]:
+    """Unit quaternions (w, x, y, z) of axis-angle vectors (radians); differentiable at zero."""
+    angle = (rotvec.square().sum(-1, keepdim=True) + 1e-24).sqrt()
     half = angle / 2
-    return torch.cat([torch.cos(half)[None], torch.sin(half) / angle * rotvec])
+    return torch.cat([torch.cos(half), torch.sin(half) / angle * rotvec], dim=-1)
 
 
-def quat_multiply(a: Float[Tensor, "4"], b: Float[Tensor, "N 4"]) -> Float[Tensor, "N 4"]:
-    """Hamilton product a ⊗ b (w, x, y, z) of one quaternion with N quaternions."""
-    aw, ax, ay, az = a
+def quat_multiply(a: Float[Tensor, "... 4"], b: Float[Tensor, "... 4"]) -> Float[Tensor, "... 4"]:
+    """Hamilton product a ⊗ b (w, x, y, z), broadcast over leading dimensions."""
+    aw, ax, ay, az = a.unbind(-1)
     bw, bx, by, bz = b.unbind(-1)
     return torch.stack(
         [
@@ -105,90 +105,121 @@ def quat_multiply(a: Float[Tensor, "4"], b: Float[Tensor, "N 4"]) -> Float[Tenso
 
 
 class RigidMotion(nn.Module):
-    """The tracked rigid motion of the dynamic object (``rigid_track.py``), a base under the MLP.
+    """The tracked rigid motions of the moving objects (``rigid_track.py``), a base under the MLP.
 
-    Gaussians deformed at time t whose canonical centre lies within ``reach`` of ``centre`` move by
-    x -> R(t) (x - c) + c + τ(t) and turn by R(t); the MLP adds its residual on top. R(t) = exp(ω(t)),
-    τ(t) = size · shift(t) are linear interpolations of one (ω, shift) per training latent at the
-    sorted latent ``times``, held at the ends. ω (radians) and shift (object sizes) are parameters:
-    the tracker sets them at the dynamic switch and the dynamic phase refines them with the
-    photometric losses. Until set (or with tracking off) there is no motion. Everything travels
-    with the checkpoint, so rendering reproduces it.
+    Up to ``bodies`` rigid bodies, one per moving object found at the dynamic switch
+    (``motion_init.py``). A deformed Gaussian belongs to the body whose centre is nearest in units
+    of that body's ``reach``; if it lies within the reach, at time t it moves by
+    x -> R_b(t) (x - c_b) + c_b + τ_b(t) and turns by R_b(t); the MLP adds its residual on top.
+    R_b(t) = exp(ω_b(t)), τ_b(t) = size_b · shift_b(t) are linear interpolations of one (ω, shift)
+    per training latent at the sorted latent ``times``, held at the ends. ω (radians) and shift
+    (object sizes) are parameters: the tracker sets them at the dynamic switch and the dynamic
+    phase refines them with the photometric losses. A body that was never set has reach 0 and moves
+    nothing. Everything travels with the checkpoint, so rendering reproduces it.
     """
 
-    def __init__(self, count: int) -> None:
+    def __init__(self, count: int, bodies: int = 1) -> None:
         super().__init__()
-        self.rotvecs = nn.Parameter(torch.zeros(count, 3))
-        self.shifts = nn.Parameter(torch.zeros(count, 3))
-        self.register_buffer("centre", torch.zeros(3))
-        self.register_buffer("reach", torch.zeros(()))
-        self.register_buffer("size", torch.ones(()))
+        if bodies < 1:
+            raise ValueError(f"RigidMotion: bodies must be >= 1, got {bodies}")
+        self.rotvecs = nn.Parameter(torch.zeros(bodies, count, 3))
+        self.shifts = nn.Parameter(torch.zeros(bodies, count, 3))
+        self.register_buffer("centre", torch.zeros(bodies, 3))
+        self.register_buffer("reach", torch.zeros(bodies))
+        self.register_buffer("size", torch.ones(bodies))
         self.register_buffer("times", torch.zeros(count))
 
     @property
+    def bodies(self) -> int:
+        return int(self.reach.shape[0])
+
+    @property
     def active(self) -> bool:
-        return self.times.numel() > 0 and float(self.reach) > 0
+        return self.times.numel() > 0 and bool((self.reach > 0).any())
 
     @property
     def translations(self) -> Tensor:
-        """[count, 3] world units."""
-        return self.shifts * self.size
+        """[bodies, count, 3] world units."""
+        return self.shifts * self.size[:, None, None]
 
     @torch.no_grad()
-    def set(self, centre: Tensor, reach: float, size: float, times: Tensor, rotvecs: Tensor, translations: Tensor) -> None:
-        """Store a track of one rotation vector and translation per training latent (any order of
-        ``times``; sorted here); ``size`` (world units) is the unit of the trained shifts."""
+    def set(self, centre: Tensor, reach: float, size: float, times: Tensor, rotvecs: Tensor, translations: Tensor,
+            body: int = 0) -> None:
+        """Store the track of ``body``: one rotation vector and translation per training latent (any
+        order of ``times``; sorted here); ``size`` (world units) is the unit of the trained shifts."""
         if times.shape[0] != self.times.shape[0]:
             raise ValueError(f"RigidMotion.set: {times.shape[0]} track times for {self.times.shape[0]} training latents")
         if size <= 0 or reach <= 0:
             raise ValueError(f"RigidMotion.set: size and reach must be positive, got {size}, {reach}")
+        if not 0 <= body < self.bodies:
+            raise ValueError(f"RigidMotion.set: body {body} out of range (0..{self.bodies - 1})")
         order = torch.argsort(times)
-        self.centre.copy_(centre)
-        self.reach.fill_(float(reach))
-        self.size.fill_(float(size))
+        self.centre[body] = centre
+        self.reach[body] = float(reach)
+        self.size[body] = float(size)
         self.times.copy_(times[order])
-        self.rotvecs.copy_(rotvecs[order])
-        self.shifts.copy_(translations[order] / size)
+        self.rotvecs[body] = rotvecs[order]
+        self.shifts[body] = translations[order] / size
 
     def prepare_load(self, state_dict: dict, prefix: str) -> None:
         """Before ``load_state_dict``: a checkpoint from before the rigid motion existed gets the
-        empty (motionless) one."""
-        for name, value in self.state_dict().items():
+        empty (motionless) one; one from the single-body version becomes body 0."""
+        current = self.state_dict()
+        single = state_dict.get(prefix + "rotvecs")
+        if single is not None and single.dim() == 2:
+            for name, value in current.items():
+                old = state_dict.get(prefix + name)
+                if old is None or name == "times":
+                    continue
+                padded = value.clone()
+                padded[0] = old
+                state_dict[prefix + name] = padded
+        for name, value in current.items():
             state_dict.setdefault(prefix + name, value)
 
     def at(self, time: float) -> Tuple[Tensor, Tensor]:
-        """Interpolated rotation vector [3] and translation [3] at ``time`` (on the buffers' device,
-        no host round trip)."""
+        """Interpolated rotation vectors [bodies, 3] and translations [bodies, 3] at ``time`` (on the
+        buffers' device, no host round trip)."""
         times = self.times
         t = torch.as_tensor(float(time), device=times.device).clamp(times[0], times[-1])
         hi = torch.searchsorted(times, t[None]).clamp(min(1, len(times) - 1), len(times) - 1)[0]
         lo = (hi - 1).clamp_min(0)
         w = ((t - times[lo]) / (times[hi] - times[lo]).clamp_min(1e-12)).clamp(0.0, 1.0)
         translations = self.translations
-        return torch.lerp(self.rotvecs[lo], self.rotvecs[hi], w), torch.lerp(translations[lo], translations[hi], w)
+        return torch.lerp(self.rotvecs[:, lo], self.rotvecs[:, hi], w), torch.lerp(translations[:, lo], translations[:, hi], w)
+
+    def assign(self, means: Float[Tensor, "N 3"]) -> Tuple[Tensor, Tensor]:
+        """Body index [N] of each canonical centre (nearest in units of reach) and whether it lies
+        within that body's reach [N] bool."""
+        distance = (means[:, None, :] - self.centre[None]).norm(dim=-1)
+        scaled = torch.where(self.reach > 0, distance / self.reach.clamp_min(1e-12), torch.full_like(distance, float("inf")))
+        nearest = scaled.argmin(dim=1)
+        return nearest, scaled.gather(1, nearest[:, None])[:, 0] <= 1.0
 
     def forward(
         self, means: Float[Tensor, "N 3"], quats: Float[Tensor, "N 4"], time: float
     ) -> Tuple[Float[Tensor, "N 3"], Float[Tensor, "N 4"]]:
-        """Offsets (Δμ, Δq) of the rigid motion at ``time`` (zero outside the reach or when empty)."""
+        """Offsets (Δμ, Δq) of the rigid motions at ``time`` (zero outside every reach or when empty)."""
         if not self.active:
             return torch.zeros_like(means), torch.zeros_like(quats)
         rotvec, translation = self.at(time)
         means = means.detach()
-        inside = ((means - self.centre).norm(dim=-1) <= self.reach)[:, None].to(means.dtype)
-        quat = quat_from_rotvec(rotvec)
-        moved = (means - self.centre) @ quat_to_matrix(quat).T + self.centre + translation
-        turned = quat_multiply(quat, quats)
-        return inside * (moved - means), inside * (turned - quats)
+        body, inside = self.assign(means)
+        quat = quat_from_rotvec(rotvec)  # [B, 4]
+        rotation = quat_to_matrix(quat)[body]  # [N, 3, 3]
+        centre = self.centre[body]
+        moved = torch.einsum("nij,nj->ni", rotation, means - centre) + centre + translation[body]
+        turned = quat_multiply(quat[body], quats)
+        weight = inside[:, None].to(means.dtype)
+        return weight * (moved - means), weight * (turned - quats)
 
 
-def quat_to_matrix(q: Float[Tensor, "4"]) -> Float[Tensor, "3 3"]:
-    """Rotation matrix of a unit quaternion (w, x, y, z)."""
-    w, x, y, z = q
-    return torch.stack(
-        [
-            torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)]),
-            torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)]),
-            torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]),
-        ]
-    )
+def quat_to_matrix(q: Float[Tensor, "... 4"]) -> Float[Tensor, "... 3 3"]:
+    """Rotation matrices of unit quaternions (w, x, y, z)."""
+    w, x, y, z = q.unbind(-1)
+    rows = [
+        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], dim=-1),
+        torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], dim=-1),
+        torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], dim=-1),
+    ]
+    return torch.stack(rows, dim=-2)

@@ -94,8 +94,19 @@ class DynamicSeedingConfig:
     """Adam learning rate of the motion initialisation"""
     init_motion_batch: int = 512
     """(seed, time) samples per motion-initialisation step"""
-    min_track_pixels: int = 10
-    """latents with fewer evidence pixels give no track point"""
+    min_object_fraction: float = 0.002
+    """an evidence region smaller than this fraction of the image is noise, not a moving object
+    (25 px at 128x96); also the least evidence a latent needs for a translation-track point"""
+    max_objects: int = 6
+    """at most this many moving objects get seeds and a rigid body (model/motion_init.py)"""
+    max_candidates: int = 10
+    """at most this many evidence regions are tracked (movers and still flaws of the static model)"""
+    still_shift: float = 0.25
+    """a tracked region whose centre moves in the image less than this many of its radii over the
+    clip (relative to where it would be if it stood still), and turns less than ``still_turn``, is
+    not a mover: no seeds"""
+    still_turn: float = 0.2
+    """radians; see ``still_shift``"""
 
 
 def box_filter(images: Float[Tensor, "N H W"], size: int) -> Float[Tensor, "N H W"]:
@@ -198,8 +209,8 @@ def evidence_track(
     cams_to_world_cv: Float[Tensor, "N 4 4"],
     config: DynamicSeedingConfig,
 ) -> Tuple[Tensor, Tensor]:
-    """3D track of the evidence blob: for each latent with at least ``min_track_pixels`` evidence
-    pixels, its centroid back-projected at the blob's median static depth times ``depth_scale``.
+    """3D track of the evidence blob: for each latent with at least ``min_object_fraction`` of its
+    pixels as evidence, its centroid back-projected at the blob's median static depth times ``depth_scale``.
 
     Returns:
         indices [T] of the latents with a track point, points [T, 3] world units.
@@ -207,7 +218,7 @@ def evidence_track(
     indices, points = [], []
     for i in range(evidence.shape[0]):
         v, u = torch.nonzero(evidence[i] > 0.5, as_tuple=True)
-        if len(v) < config.min_track_pixels:
+        if len(v) < max(1, round(config.min_object_fraction * evidence[i].numel())):
             continue
         z = depths[i, v, u]
         z = z[torch.isfinite(z) & (z > 0)]

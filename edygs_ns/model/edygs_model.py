@@ -29,7 +29,8 @@ from edygs_ns.model.appearance import MAX_SH_DEGREE, sh_to_rgb
 from edygs_ns.model.deformation import DeformationConfig, DeformationField, RigidMotion
 from edygs_ns.model.exposure_cache import NO_EXPOSURE, ExposureCache
 from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig, evidence_track, fit_motion, motion_evidence, seed_gaussians
-from edygs_ns.model.rigid_track import RigidTrackConfig, coverage_seeds, track_rigid
+from edygs_ns.model.motion_init import initialise_motion
+from edygs_ns.model.rigid_track import RigidTrackConfig
 from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES, init_gaussians, seed_tensors
 from edygs_ns.model.splat_export_view import SplatExportView
 from edygs_ns.model.strategy import DensifyConfig, append_gaussians, make_strategy, strategy_info
@@ -178,7 +179,8 @@ class EdygsModel(SplatExportView):
             points, colors, self.config.sh_degree, self.config.init_opacity, self.config.init_mask
         )
         self.deformation = DeformationField(self.config.deformation)
-        self.rigid_motion = RigidMotion(self.num_train_data)  # set from the rigid track at the dynamic switch
+        # one rigid body per moving object, set from the rigid tracks at the dynamic switch
+        self.rigid_motion = RigidMotion(self.num_train_data, bodies=self.config.seeding.max_objects)
         camera_config = self.config.camera_optimizer
         if not self.config.optimize_poses:
             camera_config = CameraOptimizerConfig(mode="off")
@@ -297,7 +299,7 @@ class EdygsModel(SplatExportView):
     def enter_dynamic_phase(self) -> None:
         """At the static -> dynamic switch: render every training latent with the static model at
         the refined poses and store the mask-consistency targets M̂; with seeding on, derive motion
-        evidence, seed Gaussians on it and initialise their motion (model/dynamic_seeding.py)."""
+        evidence, find the moving objects, seed and track each (model/motion_init.py)."""
         if self._train_cameras is None:
             return
         cameras = self._train_cameras.to(self.device)
@@ -329,35 +331,33 @@ class EdygsModel(SplatExportView):
         times = cameras.times.reshape(-1).to(self.device) if cameras.times is not None else torch.zeros(cameras.shape[0], device=self.device)
         ref = int(torch.argmin((times - cfg.reference_time).abs()))
         image = lambda i: self._train_image(i)[..., :3].to(self.device)  # noqa: E731
-        seeds = seed_gaussians(evidence[ref], depth[ref], image(ref), Ks[ref], c2w_cv[ref], cfg)
-        points, colors, radii = seeds.points, seeds.colors, seeds.radii
-        message += (
-            f" ({cfg.consistency_target}); motion evidence on {100.0 * float(evidence.mean()):.1f}% of pixels"
-            f" (residual > {threshold:.3f}), {len(points)} dynamic seeds"
-        )
+        message += f" ({cfg.consistency_target}); motion evidence on {100.0 * float(evidence.mean()):.1f}% of pixels (residual > {threshold:.3f})"
         offsets: Optional[Tensor] = None
-        if len(points) and self.config.rigid_track.enabled:
-            track = track_rigid(
-                points, colors, radii, seeds.centre, times, evidence, image, torch.stack(statics),
-                viewmats_from_c2w(torch.stack(cams_to_world)), Ks, ref, select_backend(self.device, self.config.rasterizer),
-                self.config.rigid_track,
+        if self.config.rigid_track.enabled:
+            found = initialise_motion(
+                evidence, depth, torch.stack(statics), image, viewmats_from_c2w(torch.stack(cams_to_world)), c2w_cv, Ks, times,
+                ref, select_backend(self.device, self.config.rasterizer), cfg, self.config.rigid_track,
             )
-            extra = coverage_seeds(track, points, radii, evidence, depth, image, Ks, c2w_cv, times, ref, cfg)
-            points, colors, radii = (torch.cat([a, b]) for a, b in ((points, extra.points), (colors, extra.colors), (radii, extra.radii)))
-            if self.config.rigid_track.as_base_motion:
-                distances = (points - track.centre).norm(dim=-1)
-                reach = self.config.rigid_track.reach * float(distances.max())
-                self.rigid_motion.set(track.centre, reach, float(distances.mean()), times, track.rotvecs, track.translations)
-            else:
-                offsets = track.apply(points) - points
-            turn = float(track.rotvecs.norm(dim=-1).max())
-            message += (
-                f" + {len(extra.points)} coverage seeds; rigid track on {len(times)} latents"
-                f" (turns up to {turn * 180.0 / torch.pi:.0f}°, fit loss {float(track.loss.mean()):.4f})"
-                + ("; it is the base motion of the deformation" if self.config.rigid_track.as_base_motion else "")
-            )
+            if cfg.consistency_target == "evidence":
+                self.static_masks = found.consistency.half()
+            seeds = found.seed_tensors()
+            points, colors, radii = seeds.points.to(self.device), seeds.colors.to(self.device), seeds.radii.to(self.device)
+            movers = found.movers
+            message += f"; {len(movers)} moving object(s) of {len(found.objects)} tracked region(s), {len(points)} dynamic seeds"
+            for body, obj in enumerate(movers):
+                message += f"\n  object {body}: {obj.summary()}"
+                if self.config.rigid_track.as_base_motion:
+                    self.rigid_motion.set(obj.track.centre, obj.reach, obj.size, times, obj.track.rotvecs, obj.track.translations, body=body)
+            for obj in found.objects:
+                if not obj.moved:
+                    message += f"\n  still (no seeds): {obj.summary()}"
+            if movers and not self.config.rigid_track.as_base_motion:
+                offsets = torch.cat([o.track.apply(o.seeds.points) - o.seeds.points for o in movers], dim=1)
             fit_times = times
         else:
+            seeds = seed_gaussians(evidence[ref], depth[ref], image(ref), Ks[ref], c2w_cv[ref], cfg)
+            points, colors, radii = seeds.points, seeds.colors, seeds.radii
+            message += f", {len(points)} dynamic seeds"
             track_idx, track_points = evidence_track(evidence, depth, Ks, c2w_cv, cfg)
             if ref in track_idx.tolist():
                 offsets = track_points.to(points) - track_points[track_idx.tolist().index(ref)].to(points)

@@ -24,7 +24,7 @@ reference latent did not see (``coverage_seeds``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, List, Tuple
+from typing import Callable, List, Optional, Tuple
 
 import torch
 from jaxtyping import Float
@@ -57,8 +57,13 @@ class RigidTrackConfig:
     from the centre"""
     opacity: float = 0.95
     """opacity of the seeds while tracking (an object hides what is behind it)"""
-    region_dilation: int = 5
-    """the loss counts pixels within this many pixels of the latent's motion evidence"""
+    region_dilation: float = 0.04
+    """the loss counts pixels within this fraction of the image width of the object's motion
+    evidence (5 px at 128 px)"""
+    follow_margin: float = 1.0
+    """in each latent only the evidence within this many object radii (plus the region dilation)
+    of the object's silhouette at the neighbour's transform is this object's: other movers'
+    evidence neither pulls its fit nor counts in its loss"""
     silhouette_weight: float = 0.2
     """weight of |alpha of the translated seeds − motion evidence| (mean over the loss region) added
     to the colour L1. The evidence is the object's silhouette in every latent, a cue that does not
@@ -80,12 +85,17 @@ class RigidTrackConfig:
 class RigidTrack:
     """Per-latent rigid transforms of the seeds: rotation vectors [N, 3] (radians), translations
     [N, 3] (world units), about the centre [3]; ``loss`` [N] is the final fit loss (mean absolute
-    colour error near the motion evidence, plus the weighted silhouette error)."""
+    colour error near the motion evidence, plus the weighted silhouette error); ``footprints``
+    [N, H, W] bool the pixels near the tracked seeds in every latent; ``iou`` [N] the intersection
+    over union of the tracked seeds' silhouette with the object's evidence (NaN where the latent has
+    none)."""
 
     centre: Tensor
     rotvecs: Tensor
     translations: Tensor
     loss: Tensor
+    footprints: Optional[Tensor] = None
+    iou: Optional[Tensor] = None
 
     def rotations(self) -> Float[Tensor, "N 3 3"]:
         return rotation_matrices(self.rotvecs)
@@ -164,9 +174,33 @@ def track_rigid(
     scales = radii[:, None].expand(-1, 3).contiguous()
     opacities = torch.full((len(points),), config.opacity, device=device)
     height, width = backgrounds.shape[1:3]
-    size_px = 2 * config.region_dilation + 1
-    outlines = evidence.float()
-    regions = torch.nn.functional.max_pool2d(outlines[:, None], size_px, stride=1, padding=config.region_dilation)[:, 0] > 0.5
+    dilation = max(1, int(round(config.region_dilation * width)))
+    evidence = evidence.float()
+    outlines = torch.zeros_like(evidence)  # this object's evidence, filled per latent
+    regions = torch.zeros_like(evidence, dtype=torch.bool)
+
+    def silhouette(i: int, rotvec: Tensor, unit: Tensor, turn: bool = True) -> Tensor:
+        """[H, W] alpha of the seeds at latent i under (rotvec, unit); unturned if not ``turn``."""
+        if turn:
+            moved = rigid_apply(points, centre, rotation_matrices(rotvec[None]), (unit * size)[None])[0]
+        else:
+            moved = points + (unit * size)[None]
+        # only alpha is read, so one feature channel is composited
+        return backend(moved, quats, scales, opacities, colors[:, :1], viewmats[i : i + 1], Ks[i : i + 1], width, height).alpha[0, ..., 0]
+
+    def grow(mask: Tensor, pixels: int) -> Tensor:
+        return torch.nn.functional.max_pool2d(mask.float()[None, None], 2 * pixels + 1, stride=1, padding=pixels)[0, 0] > 0.5
+
+    with torch.no_grad():
+        area = float((silhouette(ref, rotvecs[ref], units[ref]) > 0.5).sum())
+    follow = dilation + int(round(config.follow_margin * (area / torch.pi) ** 0.5))
+
+    def focus(i: int, rotvec: Tensor, unit: Tensor) -> None:
+        """This object's evidence in latent i: near its silhouette at the start transform."""
+        with torch.no_grad():
+            near = grow(silhouette(i, rotvec, unit) > 0.5, follow)
+        outlines[i] = evidence[i] * near
+        regions[i] = grow(outlines[i] > 0.5, dilation)
 
     def render_loss(i: int, rotvec: Tensor, unit: Tensor, target: Tensor) -> Tensor:
         """Fit loss of latent i (RGB ``target``) for the transform (rotvec, unit)."""
@@ -176,17 +210,17 @@ def track_rigid(
         loss = (composite - target).abs()[regions[i]].mean()
         if config.silhouette_weight > 0:
             # the seeds are only the part the reference latent saw: turned, their outline would no
-            # longer be the object's, so the silhouette places the unturned seeds (translation only);
-            # only alpha is read, so one feature channel is composited
-            shifted = points + (unit * size)[None]
-            alpha = backend(shifted, quats, scales, opacities, colors[:, :1], viewmats[i : i + 1], Ks[i : i + 1], width, height).alpha[0, ..., 0]
+            # longer be the object's, so the silhouette places the unturned seeds (translation only)
+            alpha = silhouette(i, rotvec, unit, turn=False)
             loss = loss + config.silhouette_weight * (alpha - outlines[i])[regions[i]].abs().mean()
         return loss
 
+    focus(ref, rotvecs[ref], units[ref])
     before: dict = {}  # latent -> the neighbour it was started from
     with torch.enable_grad():
         for i, prev in visiting_order(times, ref):
             before[i] = prev
+            focus(i, rotvecs[prev], units[prev])
             if not bool(regions[i].any()):
                 rotvecs[i], units[i] = rotvecs[prev], units[prev]
                 continue
@@ -209,10 +243,17 @@ def track_rigid(
                 loss.backward()
                 optimizer.step()
             rotvecs[i], units[i] = rotvec.detach(), unit.detach()
+    footprints = torch.zeros_like(regions)
+    iou = torch.full((n,), float("nan"), device=device)
     with torch.no_grad():
         for i in range(n):
             losses[i] = render_loss(i, rotvecs[i], units[i], latent(i)) if bool(regions[i].any()) else 0.0
-    return RigidTrack(centre=centre, rotvecs=rotvecs, translations=units * size, loss=losses)
+            shape = silhouette(i, rotvecs[i], units[i], turn=False) > 0.5
+            footprints[i] = grow(shape, dilation)
+            own = outlines[i] > 0.5
+            if bool(own.any()):
+                iou[i] = (shape & own).sum() / (shape | own).sum()
+    return RigidTrack(centre=centre, rotvecs=rotvecs, translations=units * size, loss=losses, footprints=footprints, iou=iou)
 
 
 def coverage_seeds(

@@ -1,0 +1,193 @@
+"""Motion initialisation at the static -> dynamic switch: find the moving objects, seed and track each.
+
+Input: the static model's render of every training latent (colour, depth) and the latents
+themselves. Output (``MotionInit``): dynamic seeds, one rigid body per moving object for the
+deformation's base motion (``deformation.RigidMotion``), and the mask-consistency targets M̂.
+
+1. **Motion evidence** (``dynamic_seeding.motion_evidence``): where the static render cannot
+   explain a latent.
+2. **Objects**: the connected evidence regions of the reference latent (the one nearest
+   ``reference_time``), largest first, then, while any latent still holds a large evidence region
+   that no object found so far covers, the largest of those, with its own latent as reference (an
+   object missed or unseen at the reference time). Regions smaller than ``min_object_fraction`` of
+   the image are noise.
+3. Each object gets its own seeds (a cap at its own median static depth), its own rigid track
+   (``rigid_track.track_rigid``, which follows only the evidence near the object), its coverage
+   seeds and its own reach. An object whose track neither moves in the image by ``still_shift`` of its
+   radius nor turns by ``still_turn`` is a flaw of the static model, not a mover: it gets no seeds and no body.
+   Nothing moving, nothing added.
+4. M̂ is the evidence near the kept objects' tracks (the rest of the evidence is no object).
+
+The rigid body is the base of the deformation, not its limit: the MLP's residual (zero at the
+switch) carries what a rigid motion cannot (articulated or deforming objects), and the body's own
+track keeps training with the photometric losses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, List, Optional
+
+import numpy as np
+import torch
+from jaxtyping import Float
+from scipy import ndimage
+from torch import Tensor
+
+from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig, Seeds, seed_gaussians
+from edygs_ns.model.rigid_track import RigidTrack, RigidTrackConfig, coverage_seeds, track_rigid
+from edygs_ns.render.contract import RasterBackend
+
+#: 8-connected neighbourhood for evidence regions.
+EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
+
+
+@dataclass
+class MotionObject:
+    """One tracked evidence region: its reference latent, seeds (tracked ones first, then coverage
+    seeds), rigid track, reach (world units), largest image shift (in its radii) and whether it moved."""
+
+    ref: int
+    seeds: Seeds
+    track: RigidTrack
+    reach: float
+    shift: float
+    moved: bool
+
+    @property
+    def size(self) -> float:
+        """Mean distance of the seeds from the track's centre, world units (the unit of the shifts)."""
+        return float((self.seeds.points - self.track.centre).norm(dim=-1).mean())
+
+    def summary(self) -> str:
+        turn = float(self.track.rotvecs.norm(dim=-1).max()) * 180.0 / torch.pi
+        iou = self.track.iou[torch.isfinite(self.track.iou)] if self.track.iou is not None else torch.zeros(0)
+        fit = f", silhouette IoU {float(iou.mean()):.2f}" if len(iou) else ""
+        return f"latent {self.ref}: {len(self.seeds.points)} seeds, moves {self.shift:.1f} radii in the image, turns {turn:.0f}°{fit}"
+
+
+@dataclass
+class MotionInit:
+    """What the switch adds: the moving objects (kept and discarded) and M̂ [N, H, W] in {0, 1}."""
+
+    objects: List[MotionObject] = field(default_factory=list)
+    consistency: Optional[Tensor] = None
+
+    @property
+    def movers(self) -> List[MotionObject]:
+        return [o for o in self.objects if o.moved]
+
+    def seed_tensors(self) -> Seeds:
+        """Every mover's seeds stacked (centre: unused, zeros)."""
+        movers = self.movers
+        if not movers:
+            empty = torch.zeros(0, 3)
+            return Seeds(empty, empty.clone(), torch.zeros(0), torch.zeros(3))
+        return Seeds(
+            torch.cat([o.seeds.points for o in movers]), torch.cat([o.seeds.colors for o in movers]),
+            torch.cat([o.seeds.radii for o in movers]), torch.zeros(3, device=movers[0].seeds.points.device),
+        )
+
+
+def evidence_regions(evidence: Float[Tensor, "H W"], min_pixels: int) -> List[Tensor]:
+    """The 8-connected regions of a 0/1 evidence image with at least ``min_pixels`` pixels, largest
+    first, each a [H, W] bool mask on the evidence's device."""
+    labels, count = ndimage.label(evidence.detach().cpu().numpy() > 0.5, structure=EIGHT_CONNECTED)
+    if count == 0:
+        return []
+    sizes = np.bincount(labels.ravel())[1:]
+    order = [int(k) + 1 for k in np.argsort(-sizes, kind="stable") if sizes[k] >= min_pixels]
+    labels_t = torch.from_numpy(labels).to(evidence.device)
+    return [labels_t == k for k in order]
+
+
+def _next_region(evidence: Tensor, covered: Tensor, ref: int, min_pixels: int) -> Optional[tuple]:
+    """(latent, region) of the largest uncovered evidence region: the reference latent's first,
+    then any latent's; None when none is left."""
+    free = (evidence > 0.5) & ~covered
+    regions = evidence_regions(free[ref].float(), min_pixels)
+    if regions:
+        return ref, regions[0]
+    best = None
+    for i in range(evidence.shape[0]):
+        if int(free[i].sum()) < min_pixels:
+            continue
+        regions = evidence_regions(free[i].float(), min_pixels)
+        if regions and (best is None or int(regions[0].sum()) > int(best[1].sum())):
+            best = (i, regions[0])
+    return best
+
+
+def image_shift(track: RigidTrack, viewmats: Float[Tensor, "N 4 4"], Ks: Float[Tensor, "N 3 3"]) -> Float[Tensor, "N"]:
+    """How far (pixels) the tracked centre lies from where the centre would be if it stood still,
+    in every latent. Motion along the viewing ray, which one view cannot tell from a change of size,
+    barely counts."""
+
+    def project(points: Tensor) -> Tensor:
+        cam = torch.einsum("nij,nj->ni", viewmats[:, :3, :3], points) + viewmats[:, :3, 3]
+        pix = torch.einsum("nij,nj->ni", Ks, cam)
+        return pix[:, :2] / pix[:, 2:].clamp_min(1e-9)
+
+    still = track.centre.expand(viewmats.shape[0], 3)
+    return (project(still + track.translations) - project(still)).norm(dim=-1)
+
+
+def initialise_motion(
+    evidence: Float[Tensor, "N H W"],
+    depth: Float[Tensor, "N H W"],
+    statics: Float[Tensor, "N H W 3"],
+    latent: Callable[[int], Float[Tensor, "H W 3"]],
+    viewmats: Float[Tensor, "N 4 4"],
+    cams_to_world_cv: Float[Tensor, "N 4 4"],
+    Ks: Float[Tensor, "N 3 3"],
+    times: Float[Tensor, "N"],
+    ref: int,
+    backend: RasterBackend,
+    seeding: DynamicSeedingConfig,
+    tracking: RigidTrackConfig,
+) -> MotionInit:
+    """Find, seed and track every moving object (see the module docstring).
+
+    Args:
+        evidence: 0/1 motion evidence of every training latent.
+        depth: static render's depth (camera z, world units; 0 where nothing was rendered).
+        statics: static render of every latent (RGB in [0, 1]); the seeds are tracked over it.
+        latent: training image i (RGB in [0, 1]) by index.
+        viewmats: world-to-camera (OpenCV axes); cams_to_world_cv: their inverses; Ks: intrinsics.
+        times: normalised time of every latent; ref: the reference latent.
+    """
+    n, height, width = evidence.shape
+    min_pixels = max(1, int(round(seeding.min_object_fraction * height * width)))
+    covered = torch.zeros_like(evidence, dtype=torch.bool)
+    result = MotionInit()
+    for _ in range(seeding.max_candidates):
+        found = _next_region(evidence, covered, ref, min_pixels)
+        if found is None or len(result.movers) >= seeding.max_objects:
+            break
+        k, region = found
+        seeds = seed_gaussians(region.float(), depth[k], latent(k), Ks[k], cams_to_world_cv[k], seeding)
+        if len(seeds.points) == 0:
+            covered[k] |= region
+            continue
+        track = track_rigid(seeds.points, seeds.colors, seeds.radii, seeds.centre, times, evidence, latent, statics,
+                            viewmats, Ks, k, backend, tracking)
+        own = evidence * track.footprints
+        extra = coverage_seeds(track, seeds.points, seeds.radii, own, depth, latent, Ks, cams_to_world_cv, times, k, seeding)
+        points = torch.cat([seeds.points, extra.points])
+        every = Seeds(points, torch.cat([seeds.colors, extra.colors]), torch.cat([seeds.radii, extra.radii]), track.centre)
+        distances = (points - track.centre).norm(dim=-1)
+        radius_px = (float(region.sum()) / torch.pi) ** 0.5
+        shift = float(image_shift(track, viewmats, Ks).max()) / max(radius_px, 1e-9)
+        turn = float(track.rotvecs.norm(dim=-1).max())
+        moved = shift >= seeding.still_shift or turn >= seeding.still_turn
+        reach = tracking.reach * float(distances.max())
+        result.objects.append(MotionObject(k, every, track, reach, shift, moved))
+        covered |= track.footprints
+        covered[k] |= region
+    movers = result.movers
+    if movers:
+        near = torch.stack([o.track.footprints for o in movers]).any(dim=0)
+        result.consistency = evidence * near
+    else:
+        result.consistency = torch.zeros_like(evidence)
+    return result

@@ -1,0 +1,117 @@
+"""Finding, seeding and tracking every moving object at the dynamic switch (model/motion_init.py)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig
+from edygs_ns.model.motion_init import evidence_regions, initialise_motion
+from edygs_ns.model.rigid_track import RigidTrackConfig
+from edygs_ns.render.torch_backend import rasterize_torch
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+H, W, F = 48, 64, 60.0
+N, REF = 5, 2
+DEPTH = 3.0
+RADIUS = 0.35
+BACKGROUND = 0.4
+
+
+def _ball(centre: torch.Tensor, seed: int, count: int = 1500):
+    """Points on a sphere of RADIUS about ``centre`` with a blocky random texture, and their radii."""
+    i = torch.arange(count, dtype=torch.float32) + 0.5
+    polar = torch.arccos(1 - 2 * i / count)
+    azimuth = math.pi * (1 + 5**0.5) * i
+    dirs = torch.stack([polar.sin() * azimuth.cos(), polar.cos(), polar.sin() * azimuth.sin()], dim=-1)
+    cells = (torch.floor(polar * 4) * 17 + torch.floor(azimuth % (2 * math.pi) * 3)).long()
+    palette = torch.rand(200, 3, generator=torch.Generator().manual_seed(seed))
+    return centre + RADIUS * dirs, palette[cells % 200], torch.full((count,), 0.015)
+
+
+def _clip(shifts: list):
+    """N latents of a static camera watching balls that move by ``shifts`` [3] per latent each
+    (zero: a still ball); returns latents, evidence (the union of the balls' silhouettes), the static
+    background render, depth, viewmats, cams_to_world, Ks and times."""
+    starts = [torch.tensor([-0.6, 0.0, DEPTH]), torch.tensor([0.6, 0.0, DEPTH])]
+    balls = [_ball(start, seed=k) for k, start in enumerate(starts[: len(shifts)])]
+    K = torch.tensor([[F, 0.0, W / 2], [0.0, F, H / 2], [0.0, 0.0, 1.0]])
+    eye = torch.eye(4)
+    background = torch.full((H, W, 3), BACKGROUND)
+    vv, uu = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    rays = torch.nn.functional.normalize(torch.stack([(uu - W / 2) / F, (vv - H / 2) / F, torch.ones_like(uu)], -1), dim=-1)
+    latents, evidence = [], []
+    for i in range(N):
+        image, silhouettes = background.clone(), torch.zeros(H, W, dtype=torch.bool)
+        for (points, colors, radii), shift, start in zip(balls, shifts, starts):
+            moved = points + (i - REF) * torch.tensor(shift)
+            quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(len(points), 1)
+            out = rasterize_torch(moved, quats, radii[:, None].repeat(1, 3), torch.full((len(points),), 0.95), colors,
+                                  eye[None], K[None], W, H)
+            image = out.render[0] + (1 - out.alpha[0]) * image
+            centre = start + (i - REF) * torch.tensor(shift)
+            along = rays @ centre
+            silhouettes |= (centre.square().sum() - along.square()) < RADIUS**2
+        latents.append(image)
+        evidence.append(silhouettes.float())
+    n = torch.arange(N, dtype=torch.float32)
+    depth = torch.full((N, H, W), DEPTH / 0.9)  # the seeds' cap centre lands at the balls' depth
+    return (torch.stack(latents), torch.stack(evidence), background.expand(N, H, W, 3), depth, eye.repeat(N, 1, 1),
+            eye.repeat(N, 1, 1), K.repeat(N, 1, 1), n / (N - 1))
+
+
+def _initialise(latents, evidence, statics, depth, viewmats, c2w, Ks, times):
+    return initialise_motion(evidence, depth, statics, lambda i: latents[i], viewmats, c2w, Ks, times, REF, rasterize_torch,
+                             DynamicSeedingConfig(), RigidTrackConfig(steps=30))
+
+
+def test_evidence_regions_are_separate_and_ordered_by_size():
+    evidence = torch.zeros(20, 30)
+    evidence[2:6, 2:6] = 1  # 16 px
+    evidence[10:18, 15:25] = 1  # 80 px
+    evidence[0, 29] = 1  # 1 px: noise
+    regions = evidence_regions(evidence, min_pixels=4)
+    assert [int(r.sum()) for r in regions] == [80, 16]
+    assert not bool((regions[0] & regions[1]).any())
+
+
+def test_two_objects_are_found_apart_and_each_gets_its_own_track():
+    shifts = [[0.1, 0.0, 0.0], [0.0, 0.1, 0.0]]  # the left ball goes right, the right ball goes down
+    latents, evidence, statics, depth, viewmats, c2w, Ks, times = _clip(shifts)
+    found = _initialise(latents, evidence, statics, depth, viewmats, c2w, Ks, times)
+    movers = found.movers
+    assert len(movers) == 2, [o.summary() for o in found.objects]
+    movers = sorted(movers, key=lambda o: float(o.track.centre[0]))  # left ball first
+    project = lambda p: p[..., :2] / p[..., 2:] * F  # noqa: E731  (a static camera at the origin)
+    for obj, shift, start in zip(movers, shifts, (-0.6, 0.6)):
+        true = torch.tensor([start, 0.0, DEPTH]) + (torch.arange(N, dtype=torch.float32) - REF)[:, None] * torch.tensor(shift)
+        tracked = obj.track.centre + obj.track.translations
+        # a static camera cannot tell depth from size: compare where the centres project (pixels)
+        error = (project(tracked) - project(true)).norm(dim=-1)
+        moved = (project(true) - project(true[REF])).norm(dim=-1)
+        assert float(error.max()) < 0.35 * float(moved.max()), (project(tracked), project(true))
+    # each body is centred on its own ball and reaches no farther than the gap to the other one
+    for obj, x in zip(movers, (-0.6, 0.6)):
+        assert abs(float(obj.track.centre[0]) - x) < 0.15 and obj.reach < 1.2
+    assert len(found.seed_tensors().points) == sum(len(o.seeds.points) for o in movers)
+    # M̂ is the evidence near the tracked objects: here all of it
+    assert torch.equal(found.consistency, evidence)
+
+
+def test_a_still_region_is_no_mover_and_seeds_nothing():
+    # one ball that never moves, which the "static model" (the plain background) fails to explain
+    latents, evidence, statics, depth, viewmats, c2w, Ks, times = _clip([[0.0, 0.0, 0.0]])
+    found = _initialise(latents, evidence, statics, depth, viewmats, c2w, Ks, times)
+    assert len(found.objects) >= 1 and not found.movers
+    assert len(found.seed_tensors().points) == 0
+    assert float(found.consistency.sum()) == 0.0
+
+
+def test_no_evidence_no_objects():
+    latents, _, statics, depth, viewmats, c2w, Ks, times = _clip([])
+    found = _initialise(latents, torch.zeros(N, H, W), statics, depth, viewmats, c2w, Ks, times)
+    assert found.objects == [] and len(found.seed_tensors().points) == 0
+    assert float(found.consistency.sum()) == 0.0
