@@ -118,7 +118,7 @@ def write_scene(root: Path, unit: str = "ns", rectified: bool = False, n_events:
             np.savez(root / "ev_map.npz", inv_mapx=np.zeros((H, W), np.float32), inv_mapy=np.zeros((H, W), np.float32))
         else:
             f["x"], f["y"] = xi.astype(np.uint16), yi.astype(np.uint16)
-        f["t"] = t_us * 1000 + rng.integers(0, 1000, n_events) if unit == "ns" else t_us
+        f["t"] = np.sort(t_us * 1000 + rng.integers(0, 1000, n_events)) if unit == "ns" else t_us  # sorted in ns too
         f["p"] = p01.astype(np.int8)
     return TinyScene(root, start[blurry], end[blurry], mid[~blurry], xi, yi, t_us, np.where(p01 == 1, 1.0, -1.0),
                      [files[i] for i in np.flatnonzero(blurry)])

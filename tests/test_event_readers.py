@@ -147,11 +147,15 @@ def test_npy_structured_array_needs_sensor_size(tmp_path):
         read_events(path)
 
 
-def test_npy_dict_of_columns(tmp_path):
+def test_pickled_npy_is_refused_never_unpickled(tmp_path):
     events = make_events()
     path = tmp_path / "ev.npy"
     np.save(path, {"x": events.x, "y": events.y, "t": events.t, "p": (events.p > 0).astype(np.uint8)})
-    assert_same_events(read_events(path, sensor_size=SENSOR), events)
+    for read in (read_events, open_event_source):
+        with pytest.raises(ValueError, match=r"ev\.npy: holds pickled Python objects.*\.npz"):
+            read(path, sensor_size=SENSOR)
+    sources = [p for p in Path(__file__).resolve().parents[1].joinpath("edygs_ns").rglob("*.py")]
+    assert not [p for p in sources if "allow_pickle=True" in p.read_text()]
 
 
 # ---------------------------------------------------------------- text

@@ -8,10 +8,11 @@ from __future__ import annotations
 
 from contextlib import nullcontext
 from pathlib import Path
-from typing import Sequence, Union
+from typing import List, Sequence, Union
 
 import numpy as np
 
+from edygs_ns.events.coverage import measure_coverage, resolve_coverage
 from edygs_ns.events.exposures import Exposure
 from edygs_ns.events.readers import ArrayEventSource, EventSource
 from edygs_ns.events.types import EventArray
@@ -20,9 +21,6 @@ from edygs_ns.events.types import EventArray
 PROGRESS_MIN_EXPOSURES = 50
 #: Fewest latent frames per exposure (one bin needs two latents).
 MIN_LATENTS = 2
-#: Exposures may start before the first event or end after the last one by this fraction of
-#: one event bin (events are discrete; a quiet instant at the edge is not a gap).
-COVERAGE_TOLERANCE_BINS = 1.0
 #: What check_event_coverage suggests by default when an exposure is not covered.
 COVERAGE_HINT = "check the event file and the exposure times"
 
@@ -150,10 +148,11 @@ def exposure_bins(
 
 def check_event_coverage(
     source: EventSource, exposures: Sequence[Exposure], names: Sequence[str], k: int, hint: str = COVERAGE_HINT
-) -> None:
+) -> List[str]:
     """Raise ValueError naming the first frame whose exposure the events do not cover.
 
-    An exposure may overhang the first/last event by COVERAGE_TOLERANCE_BINS event bins.
+    The tolerance is that of :mod:`edygs_ns.events.coverage` (a quiet instant at the edge, or a
+    small part of the edge bin, which is reported); nothing is dropped here.
 
     Args:
         source: the events.
@@ -162,6 +161,9 @@ def check_event_coverage(
         k: latents per exposure (sets the bin length, hence the tolerance).
         hint: what the message suggests checking.
 
+    Returns:
+        One-line notices about partially covered frames (also logged).
+
     Raises:
         ValueError: the source holds no events, or an exposure reaches past the events.
     """
@@ -169,10 +171,11 @@ def check_event_coverage(
         t_first, t_last = source.t_range()
     except ValueError as err:
         raise ValueError(f"{source.name}: holds no events, so no exposure is covered") from err
-    for exposure, name in zip(exposures, names):
-        tolerance = COVERAGE_TOLERANCE_BINS * (exposure.end_us - exposure.start_us) / (k - 1)
-        if exposure.start_us < t_first - tolerance or exposure.end_us > t_last + tolerance:
-            raise ValueError(
-                f"{source.name}: events cover [{t_first}, {t_last}] µs but frame {exposure.frame} ({name}) is exposed "
-                f"over [{exposure.start_us}, {exposure.end_us}] µs; {hint}"
-            )
+    coverage = measure_coverage(t_first, t_last, len(source), exposures, k)
+    notes = resolve_coverage(coverage, exposures, names, list(range(len(exposures))), source.name, hint, allow_drop=False)
+    if notes:
+        from nerfstudio.utils.rich_utils import CONSOLE
+
+        for note in notes:
+            CONSOLE.print(f"[yellow]note[/]: {note}")
+    return notes

@@ -9,7 +9,8 @@ Formats (dispatch on the file suffix):
   :class:`H5EventSource` is told otherwise (EvDeblurNeRF's Blender scenes store ns), and
   floating-point (rectified) coordinates can be rounded to the nearest pixel there.
 - NumPy (``.npz``: arrays x, y, t, p and optionally sensor_size; ``.npy``: a structured array
-  with fields x, y, t, p, or a pickled dict of those arrays). t in µs.
+  with fields x, y, t, p). t in µs. Pickled objects are never loaded (unpickling an untrusted
+  file can run code).
 - Text (``.txt``, ``.csv``): one ``t x y p`` per line, t in seconds, p in {0, 1}; ``#`` lines
   are skipped, and a header line ``sensor_size (height width): H W`` (our writer's) gives the
   sensor size. A first line holding exactly two integers is read as ``width height`` (the
@@ -17,7 +18,11 @@ Formats (dispatch on the file suffix):
 - AEDAT4 (``.aedat4``, PyPI ``aedat``): the first event stream and every frame (APS) packet.
 
 :func:`open_event_source` gives windowed access for files larger than memory: HDF5 and .npy
-windows are found by binary search on the timestamps and only the window is read.
+windows are found by binary search on the timestamps and only the window is read; the whole
+timestamp column is checked once, chunk by chunk, for order and NaN/inf when the file is opened.
+
+Every reader takes a ``time_unit`` (:mod:`edygs_ns.events.units`: s, ms, us, ns); None is the
+format's documented unit (:func:`native_time_unit`).
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from edygs_ns.events.types import EventArray
+from edygs_ns.events.units import check_time_unit, ticks_to_us
 from edygs_ns.events.validate import check_sensor_size, validate_events
 
 PathLike = Union[str, Path]
@@ -61,10 +67,13 @@ US_PER_SECOND = 1_000_000
 TXT_SENSOR_SIZE_PATTERN = re.compile(r"sensor_size[^:]*:\s*(\d+)\s+(\d+)")
 #: Columns of a text event line: t x y p.
 TXT_COLUMNS = 4
-#: Timestamp units an HDF5 file may use, as ticks per microsecond.
+#: Timestamp units an EvDeblurNeRF HDF5 file may use, as ticks per microsecond.
 TICKS_PER_US = {"us": 1, "ns": 1000}
-#: aedat frame formats and the number of channels kept (RGBA drops alpha).
-AEDAT_FRAME_FORMATS = {"L": 1, "RGB": 3, "RGBA": 3}
+#: Events per chunk of the whole-file order and NaN/inf scan of a windowed source.
+SCAN_CHUNK_EVENTS = 1 << 22
+#: aedat frame formats and the number of channels kept (RGBA drops alpha); aedat >= 2.3 yields
+#: 16-bit grey frames as "I;16" (uint16 codes, e.g. a DAVIS's 10-bit ADC values).
+AEDAT_FRAME_FORMATS = {"L": 1, "RGB": 3, "RGBA": 3, "I;16": 1}
 
 
 @dataclass(frozen=True)
@@ -72,7 +81,8 @@ class ApsFrame:
     """One intensity (APS) frame of a DAVIS recording.
 
     Attributes:
-        image: [H, W] (grey) or [H, W, 3] (RGB) uint8 pixels, as the sensor read them.
+        image: [H, W] (grey) or [H, W, 3] (RGB) pixels as the sensor read them: uint8, or uint16
+            codes for "I;16" frames (scaled to 8 bits by the caller, which sees every frame).
         exposure_start_us: start of the exposure in µs, on the event clock.
         exposure_end_us: end of the exposure in µs, on the event clock.
     """
@@ -182,23 +192,34 @@ def _first_index_at_or_after(
     return lo + int(np.searchsorted(block(lo, hi), value, side="left"))
 
 
-def _floor_ticks(values: np.ndarray) -> np.ndarray:
-    """Floating-point timestamps floored to whole ticks; integer ones untouched (no float round trip)."""
-    return np.floor(values) if values.dtype.kind == "f" else values
+def _first_unsorted(t: np.ndarray, previous: Optional[float]) -> Optional[int]:
+    """Index in ``t`` of the first timestamp below its predecessor (``previous`` before t[0]), or None."""
+    if previous is not None and len(t) and t[0] < previous:
+        return 0
+    drops = np.flatnonzero(np.diff(t) < 0)
+    return int(drops[0]) + 1 if len(drops) else None
 
 
 class _ColumnEventSource(EventSource):
     """Windowed reads from four sorted on-disk columns (HDF5 datasets or memory-mapped fields).
+
+    Opening scans the whole timestamp column (and floating-point coordinates) once, in chunks of
+    SCAN_CHUNK_EVENTS, for NaN/inf and for timestamps that decrease: a binary search over an
+    unsorted column would silently miss events.
 
     Args:
         name: the file, for messages.
         sensor_size: (height, width).
         columns: x, y, t, p column objects (sliceable, sorted by t).
         t_offset_us: µs added to every timestamp (after unit conversion).
-        time_unit: unit of the stored t ("us" or "ns"); ns are floored to µs.
+        time_unit: unit of the stored t (one of :data:`edygs_ns.events.units.TIME_UNITS`).
         round_coordinates: round x, y to the nearest pixel and drop events that land outside
             the sensor (rectified, floating-point coordinates); otherwise coordinates must be
             whole numbers inside the sensor.
+
+    Raises:
+        ValueError: mismatched column lengths, NaN/inf, unsorted timestamps or an unreadable
+            (corrupt) chunk; the message names the file.
     """
 
     def __init__(
@@ -211,42 +232,73 @@ class _ColumnEventSource(EventSource):
         round_coordinates: bool = False,
     ) -> None:
         super().__init__(name, sensor_size)
-        if time_unit not in TICKS_PER_US:
-            raise ValueError(f"{name}: unknown time unit {time_unit!r}; expected one of {sorted(TICKS_PER_US)}")
         self._columns = columns
         self._t_offset = int(t_offset_us)
-        self._ticks = TICKS_PER_US[time_unit]
+        self._unit = check_time_unit(time_unit, name)
         self._round = bool(round_coordinates)
         lengths = {k: int(v.shape[0]) for k, v in columns.items()}
         if len(set(lengths.values())) != 1:
             raise ValueError(f"{name}: event fields have mismatched lengths {lengths}")
         self._n = lengths["t"]
+        self._scan()
 
     def __len__(self) -> int:
         return self._n
 
+    def _slice(self, field: str, i0: int, i1: int) -> np.ndarray:
+        """Stored values of one column, a read error (a corrupt chunk) named in one line."""
+        try:
+            return np.asarray(self._columns[field][i0:i1])
+        except (OSError, RuntimeError, KeyError) as err:
+            raise ValueError(
+                f"{self.name}: cannot read event field {field!r} at events {i0}..{i1} ({err}); the file is corrupt or truncated"
+            ) from None
+
+    def _scan(self) -> None:
+        """Check the whole file, chunk by chunk: finite t (and float x, y), t never decreasing."""
+        previous: Optional[float] = None
+        float_fields = [f for f in EVENT_FIELDS if np.dtype(self._columns[f].dtype).kind == "f"]
+        for i0 in range(0, self._n, SCAN_CHUNK_EVENTS):
+            i1 = min(i0 + SCAN_CHUNK_EVENTS, self._n)
+            chunk = {f: self._slice(f, i0, i1) for f in float_fields}
+            for field, values in chunk.items():
+                bad = ~np.isfinite(values)
+                if bad.any():
+                    first = i0 + int(np.flatnonzero(bad)[0])
+                    raise ValueError(
+                        f"{self.name}: event field {field!r} holds NaN/inf (first at event index {first}: "
+                        f"{values[first - i0]}); remove or repair those events"
+                    )
+            t = chunk["t"] if "t" in chunk else self._slice("t", i0, i1)
+            drop = _first_unsorted(t, previous)
+            if drop is not None:
+                index = i0 + drop
+                before = previous if drop == 0 else t[drop - 1]
+                raise ValueError(
+                    f"{self.name}: timestamps are not sorted: t decreases from {before} to {t[drop]} "
+                    f"({self._unit}) at event index {index}; edygs_ns needs events in time order (sort the file by t)"
+                )
+            if len(t):
+                previous = t[-1]
+
     def _t_at(self, i: int) -> int:
-        return int(_floor_ticks(np.asarray(self._columns["t"][i])))
+        return int(ticks_to_us(self._slice("t", i, i + 1), self._unit)[0])
 
     def _t_block(self, i0: int, i1: int) -> np.ndarray:
-        return _floor_ticks(np.asarray(self._columns["t"][i0:i1])).astype(np.int64)
+        return ticks_to_us(self._slice("t", i0, i1), self._unit).astype(np.int64)
 
     def _index(self, t_us: int) -> int:
-        # Stored ticks t floor to µs u (u = t // ticks), so u >= T exactly when t >= T * ticks.
-        ticks = (int(t_us) - self._t_offset) * self._ticks
-        return _first_index_at_or_after(ticks, self._n, self._t_at, self._t_block)
+        # The conversion to µs never decreases, so a search over converted values is exact.
+        return _first_index_at_or_after(int(t_us) - self._t_offset, self._n, self._t_at, self._t_block)
 
     def t_range(self) -> Tuple[int, int]:
         if self._n == 0:
             raise self._no_events()
-        first, last = self._t_at(0) // self._ticks, self._t_at(self._n - 1) // self._ticks
-        return first + self._t_offset, last + self._t_offset
+        return self._t_at(0) + self._t_offset, self._t_at(self._n - 1) + self._t_offset
 
     def _read(self, i0: int, i1: int, source: str) -> EventArray:
-        raw = {k: np.asarray(v[i0:i1]) for k, v in self._columns.items()}
-        t = _floor_ticks(raw["t"])  # NaN stays NaN: validate_events names it
-        if self._ticks != 1:
-            t = np.floor(t / self._ticks) if t.dtype.kind == "f" else t.astype(np.int64) // self._ticks
+        raw = {k: self._slice(k, i0, i1) for k in EVENT_FIELDS}
+        t = ticks_to_us(raw["t"], self._unit)  # NaN stays NaN: validate_events names it
         t = t + self._t_offset if t.dtype.kind == "f" else t.astype(np.int64) + self._t_offset
         x, y, p = raw["x"], raw["y"], raw["p"]
         if self._round:
@@ -342,9 +394,11 @@ class H5EventSource(_ColumnEventSource):
 class NpyEventSource(_ColumnEventSource):
     """Windowed reads from a memory-mapped structured .npy array with fields x, y, t, p."""
 
-    def __init__(self, path: Path, array: np.memmap, sensor_size: Optional[Sequence[int]], t_offset_us: int) -> None:
+    def __init__(
+        self, path: Path, array: np.memmap, sensor_size: Optional[Sequence[int]], t_offset_us: int, time_unit: str = "us"
+    ) -> None:
         columns = {k: array[k] for k in EVENT_FIELDS}
-        super().__init__(str(path), _resolve_sensor_size(None, sensor_size, path), columns, t_offset_us)
+        super().__init__(str(path), _resolve_sensor_size(None, sensor_size, path), columns, t_offset_us, time_unit=time_unit)
         self._array = array
 
     def close(self) -> None:
@@ -382,18 +436,27 @@ def _load_npz(path: Path) -> _RawEvents:
         raise ValueError(f"{path}: cannot read as .npz ({err})") from err
 
 
+#: What a refused pickled .npy should become instead.
+PICKLE_REFUSED = (
+    "holds pickled Python objects, which edygs_ns never loads (unpickling an untrusted file can run code); "
+    "save the columns x, y, t, p as an .npz or as a structured .npy array"
+)
+
+
 def _load_npy(path: Path) -> _RawEvents:
-    """A .npy holding a structured array or (pickled, trusted files only) a dict of columns."""
+    """A .npy holding a structured array with fields x, y, t, p (never a pickle)."""
     try:
-        data = np.load(path, allow_pickle=True)
-    except (OSError, ValueError) as err:
-        raise ValueError(f"{path}: cannot read as .npy ({err})") from err
+        data = np.load(path, allow_pickle=False)
+    except ValueError as err:
+        if "allow_pickle" in str(err):
+            raise ValueError(f"{path}: {PICKLE_REFUSED}") from None
+        raise ValueError(f"{path}: cannot read as .npy ({err})") from None
+    except OSError as err:
+        raise ValueError(f"{path}: cannot read as .npy ({err})") from None
     if data.dtype.names is not None:
         return _columns_from_mapping({k: data[k] for k in data.dtype.names}, path)
-    if data.dtype == object and data.shape == () and isinstance(data.item(), dict):
-        return _columns_from_mapping(data.item(), path)
     raise ValueError(
-        f"{path}: expected a structured array with fields {EVENT_FIELDS} or a dict of them, "
+        f"{path}: expected a structured array with fields {EVENT_FIELDS}, "
         f"got an array of dtype {data.dtype} and shape {data.shape}"
     )
 
@@ -435,15 +498,17 @@ def _load_text(path: Path) -> _RawEvents:
         table = np.zeros((0, TXT_COLUMNS))
     if table.shape[1] < TXT_COLUMNS:
         raise ValueError(f"{path}: expected {TXT_COLUMNS} columns 't x y p' per line, found {table.shape[1]}")
-    t_us = np.round(table[:, 0] * US_PER_SECOND)
-    return _RawEvents(table[:, 1], table[:, 2], t_us, table[:, 3], sensor_size=sensor_size)
+    return _RawEvents(table[:, 1], table[:, 2], table[:, 0], table[:, 3], sensor_size=sensor_size)
 
 
 def _frame_from_packet(frame: Dict[str, Any], path: Path) -> ApsFrame:
     fmt = frame["format"]
     if fmt not in AEDAT_FRAME_FORMATS:
         raise ValueError(f"{path}: unsupported frame format {fmt!r} (supported: {sorted(AEDAT_FRAME_FORMATS)})")
-    pixels = np.array(frame["pixels"], dtype=np.uint8)
+    dtype = np.uint16 if fmt == "I;16" else np.uint8
+    pixels = np.asarray(frame["pixels"])
+    if pixels.dtype != dtype:
+        raise ValueError(f"{path}: frame format {fmt!r} with {pixels.dtype} pixels (expected {np.dtype(dtype).name})")
     channels = AEDAT_FRAME_FORMATS[fmt]
     image = pixels.reshape(pixels.shape[:2]) if channels == 1 else pixels[..., :channels]
     return ApsFrame(
@@ -493,11 +558,21 @@ def _check_path(path: PathLike) -> Path:
     return path
 
 
-def _finish(raw: _RawEvents, path: Path, sensor_size: Optional[Sequence[int]], t_offset_us: Optional[int]) -> EventArray:
+def native_time_unit(path: PathLike) -> str:
+    """The timestamp unit a file's format documents: seconds for text files, µs otherwise."""
+    return "s" if Path(path).suffix.lower() in TEXT_SUFFIXES else "us"
+
+
+def _finish(
+    raw: _RawEvents, path: Path, sensor_size: Optional[Sequence[int]], t_offset_us: Optional[int], time_unit: str
+) -> EventArray:
     size = _resolve_sensor_size(raw.sensor_size, sensor_size, path)
-    t = raw.t
+    t = np.asarray(raw.t)
+    if t.dtype.kind not in "iufb":
+        raise ValueError(f"{path}: event field 't' has non-numeric dtype {t.dtype}")
+    t = ticks_to_us(t, time_unit)
     if t_offset_us:
-        t = np.asarray(t).astype(np.float64 if np.asarray(t).dtype.kind == "f" else np.int64) + int(t_offset_us)
+        t = t + (float(t_offset_us) if t.dtype.kind == "f" else int(t_offset_us))
     return validate_events(raw.x, raw.y, t, raw.p, size, str(path))
 
 
@@ -507,18 +582,24 @@ def _unknown_format(path: Path) -> ValueError:
 
 
 def open_event_source(
-    path: PathLike, sensor_size: Optional[Sequence[int]] = None, t_offset_us: Optional[int] = None
+    path: PathLike,
+    sensor_size: Optional[Sequence[int]] = None,
+    t_offset_us: Optional[int] = None,
+    time_unit: Optional[str] = None,
 ) -> EventSource:
     """Open an event file for windowed reads.
 
-    HDF5 files and structured .npy arrays are read lazily (a window reads only its events);
-    the other formats are loaded whole, once, into memory.
+    HDF5 files and structured .npy arrays are read lazily (a window reads only its events; the
+    timestamps are scanned once, chunk by chunk, for order and NaN/inf); the other formats are
+    loaded whole, once, into memory and validated there.
 
     Args:
         path: the event file.
         sensor_size: (height, width), needed when the file does not store it.
         t_offset_us: µs added to every timestamp, replacing the file's own offset (DSEC
             ``t_offset``); None uses the file's offset, or 0 when it has none.
+        time_unit: unit of the stored timestamps (s, ms, us, ns); None: the format's own
+            (:func:`native_time_unit`).
 
     Returns:
         An EventSource; close it (or use ``with``) when done.
@@ -528,21 +609,25 @@ def open_event_source(
         ValueError: unknown format, missing sensor size, or a malformed file (names the file).
     """
     path = _check_path(path)
+    unit = check_time_unit(time_unit or native_time_unit(path), str(path))
     suffix = path.suffix.lower()
     if suffix in HDF5_SUFFIXES:
-        return H5EventSource(path, sensor_size, t_offset_us)
+        return H5EventSource(path, sensor_size, t_offset_us, time_unit=unit)
     if suffix in NPY_SUFFIXES:
         try:
             mapped = np.load(path, mmap_mode="r", allow_pickle=False)
         except ValueError:
-            mapped = None  # object arrays (a pickled dict) cannot be memory-mapped
+            mapped = None  # object arrays cannot be memory-mapped; read_events says why it refuses them
         if mapped is not None and mapped.dtype.names is not None and all(k in mapped.dtype.names for k in EVENT_FIELDS):
-            return NpyEventSource(path, mapped, sensor_size, int(t_offset_us or 0))
-    return ArrayEventSource(read_events(path, sensor_size, t_offset_us), name=str(path))
+            return NpyEventSource(path, mapped, sensor_size, int(t_offset_us or 0), time_unit=unit)
+    return ArrayEventSource(read_events(path, sensor_size, t_offset_us, unit), name=str(path))
 
 
 def read_events(
-    path: PathLike, sensor_size: Optional[Sequence[int]] = None, t_offset_us: Optional[int] = None
+    path: PathLike,
+    sensor_size: Optional[Sequence[int]] = None,
+    t_offset_us: Optional[int] = None,
+    time_unit: Optional[str] = None,
 ) -> EventArray:
     """Read every event of a file (format chosen by suffix) into a validated EventArray.
 
@@ -552,6 +637,8 @@ def read_events(
             the file's when it does.
         t_offset_us: µs added to every timestamp, replacing the file's own offset (DSEC
             ``t_offset``); None uses the file's offset, or 0 when it has none.
+        time_unit: unit of the stored timestamps (s, ms, us, ns); None: the format's own
+            (:func:`native_time_unit`).
 
     Returns:
         EventArray (x, y int32 pixels, t int64 µs, p int8 ±1), sorted by t.
@@ -561,9 +648,10 @@ def read_events(
         ValueError: unknown format, missing sensor size, or bad events (names the file).
     """
     path = _check_path(path)
+    unit = check_time_unit(time_unit or native_time_unit(path), str(path))
     suffix = path.suffix.lower()
     if suffix in HDF5_SUFFIXES:
-        with H5EventSource(path, sensor_size, t_offset_us) as source:
+        with H5EventSource(path, sensor_size, t_offset_us, time_unit=unit) as source:
             return source.read_all()
     loaders: Dict[Tuple[str, ...], Callable[[Path], _RawEvents]] = {
         NPZ_SUFFIXES: _load_npz,
@@ -573,15 +661,17 @@ def read_events(
     }
     for suffixes, loader in loaders.items():
         if suffix in suffixes:
-            return _finish(loader(path), path, sensor_size, t_offset_us)
+            return _finish(loader(path), path, sensor_size, t_offset_us, unit)
     raise _unknown_format(path)
 
 
-def read_aedat4(path: PathLike) -> Tuple[EventArray, List[ApsFrame]]:
+def read_aedat4(path: PathLike, time_unit: Optional[str] = None) -> Tuple[EventArray, List[ApsFrame]]:
     """Read the events and APS frames of an AEDAT4 recording (DAVIS cameras).
 
     Args:
         path: .aedat4 file; the sensor size comes from its event stream.
+        time_unit: unit of the event timestamps; None: µs, as the format defines. The frames'
+            exposure times are converted with the same unit.
 
     Returns:
         (events, frames): the first event stream as an EventArray, and every frame packet as an
@@ -592,5 +682,12 @@ def read_aedat4(path: PathLike) -> Tuple[EventArray, List[ApsFrame]]:
         ValueError: not an AEDAT4 file, no event stream, or bad events (names the file).
     """
     path = _check_path(path)
+    unit = check_time_unit(time_unit or native_time_unit(path), str(path))
     raw, frames = _load_aedat4(path)
-    return _finish(raw, path, None, None), frames
+    if unit != "us":
+        frames = [
+            ApsFrame(f.image, int(ticks_to_us(np.array([f.exposure_start_us]), unit)[0]),
+                     int(ticks_to_us(np.array([f.exposure_end_us]), unit)[0]))
+            for f in frames
+        ]
+    return _finish(raw, path, None, None, unit), frames

@@ -26,7 +26,12 @@ Input forms:
 A capture holds the selected frames (frame range/stride applied), downscaled by an integer
 factor together with the event coordinates. Pixel values are stored 8-bit RGB as read: grey
 frames are repeated over three channels, alpha is composited over a white or black background,
-16-bit images are scaled to 8 bits.
+16-bit images are scaled to 8 bits with one bit depth per capture (:mod:`.frames`).
+
+Frames whose exposure the events do not cover are dropped with a notice when they are few, or
+refused with the options that fix it (:mod:`edygs_ns.events.coverage`); the event time unit
+is given (``--events-time-unit``) or detected from the spans, and the decision is logged. Every
+notice is one line in ``Capture.notes``.
 """
 
 from __future__ import annotations
@@ -39,18 +44,15 @@ from typing import List, Literal, Optional, Sequence, Tuple
 import cv2
 import numpy as np
 
-from edygs_ns.events.accumulate import COVERAGE_TOLERANCE_BINS, check_event_coverage, latent_times_us  # noqa: F401 (re-exported)
+from edygs_ns.events.accumulate import latent_times_us
+from edygs_ns.events.coverage import measure_coverage, resolve_coverage
 from edygs_ns.events.exposures import Exposure, read_exposures
-from edygs_ns.events.readers import ArrayEventSource, EventSource, open_event_source, read_aedat4
+from edygs_ns.events.readers import ArrayEventSource, EventSource, native_time_unit, open_event_source, read_aedat4
 from edygs_ns.events.types import EventArray
+from edygs_ns.events.units import AUTO_UNIT, US_PER_TICK, detect_time_unit
+from edygs_ns.preprocess.frames import frames_to_rgb8, read_frames, read_raw_image, to_rgb8  # noqa: F401 (re-exported)
 from edygs_ns.data.layouts.common import Intrinsics, interpolate_poses  # noqa: F401 (re-exported)
 
-#: Largest value of an 8-bit pixel.
-UINT8_MAX = 255
-#: 16-bit pixels are divided by this to become 8-bit (65535 / 257 = 255).
-UINT16_TO_UINT8 = 257
-#: Colour channels of every frame in a capture (RGB).
-RGB_CHANNELS = 3
 #: Name of the ground-truth folder of a raw capture, and its pose file.
 GT_DIR_NAME = "gt"
 GT_TRANSFORMS_NAME = "transforms.json"
@@ -64,6 +66,8 @@ CALIBRATION_ASPECT_TOLERANCE = 1e-2
 E2NERF_TRAIN_JSON = "transform_train.json"
 E2NERF_TRAIN_DIR = "train"
 E2NERF_EVENTS = "events.pt"
+#: E2NeRF's README names its event file event.pt; either name is read (events.pt first).
+E2NERF_EVENT_FILES = (E2NERF_EVENTS, "event.pt")
 E2NERF_IMAGE_PATTERN = "r_{index}.png"
 #: E2NeRF real (LLFF style) scene files.
 E2NERF_LLFF_POSES = "poses_bounds.npy"
@@ -84,8 +88,11 @@ E2NERF_BLENDER_DEPTH_RANGE = (2.0, 6.0)
 #: [i * period, i * period + exposure) µs. Only normalised latent times depend on it.
 E2NERF_FRAME_PERIOD_US = 200_000
 E2NERF_EXPOSURE_US = 100_000
-#: What a coverage error suggests checking (edygs-process can shift the event clock).
-COVERAGE_HINT = "check the event file, the exposure times and --events-t-offset-us"
+#: What a coverage error suggests checking (edygs-process can convert and shift the event clock).
+COVERAGE_HINT = ("check the event clock: --events-time-unit (the unit of the file's timestamps) and "
+                 "--events-t-offset-us (µs added to them)")
+#: What a coverage error of an AEDAT4 recording suggests (frames and events share one clock).
+AEDAT4_COVERAGE_HINT = "the recording's frames and events do not overlap (check --events-time-unit)"
 #: Fragment of the readers' error when a file stores no sensor size (then the frame size is used).
 NO_SENSOR_SIZE_MESSAGE = "does not store the sensor size"
 
@@ -120,6 +127,13 @@ class InputConfig:
     EvDeblurNeRF poses."""
     events_t_offset_us: Optional[int] = None
     """Microseconds added to every event timestamp (replaces the file's own t_offset)."""
+    events_time_unit: Literal["auto", "s", "ms", "us", "ns"] = "auto"
+    """Unit of the event timestamps, for every input with events. "auto": the unit under which the events
+    last about as long as the exposures (logged); AEDAT4 recordings are µs by the format. Overrides
+    --evdeblurnerf-events-unit; E2NeRF events are pre-binned and carry no timestamps."""
+    frame_bits: Optional[int] = None
+    """Significant bits of 16-bit frames (10, 12, 14 or 16). None: the smallest depth holding the largest
+    code of all the frames (logged), so 12-bit data in 16-bit PNGs is not darkened 16 times."""
     frame_start: int = 0
     """First blurry frame to use (index into the input's frame list)."""
     frame_end: Optional[int] = None
@@ -188,6 +202,8 @@ class Capture:
         sharp_views: sharp views to write as ground-truth novel views, if the input has them.
         input_paths: files whose content the processing depends on (fingerprints).
         selected: n indices of the selected frames in the input's frame list.
+        dropped: indices (input's frame list) of selected frames dropped as not covered by events.
+        notes: one-line notices of what was assumed or dropped while reading.
     """
 
     form: str
@@ -206,6 +222,8 @@ class Capture:
     sharp_views: Optional[SharpViews] = None
     input_paths: List[Path] = field(default_factory=list)
     selected: List[int] = field(default_factory=list)
+    dropped: List[int] = field(default_factory=list)
+    notes: List[str] = field(default_factory=list)
 
     @property
     def height(self) -> int:
@@ -260,53 +278,9 @@ class DownscaledEventSource(EventSource):
 # Frames
 
 
-def to_rgb8(image: np.ndarray, name: str, alpha_background: str = "white") -> np.ndarray:
-    """An image as read from disk (grey, RGB or RGBA; 8 or 16 bit) as uint8 [H, W, 3] RGB.
-
-    Args:
-        image: [H, W], [H, W, 1], [H, W, 3] or [H, W, 4] uint8/uint16, channels in RGB(A) order.
-        name: the image's origin, for the error message.
-        alpha_background: "white" or "black", what transparent pixels show.
-
-    Raises:
-        ValueError: unsupported dtype or channel count.
-    """
-    if image.dtype == np.uint16:
-        image = (image // UINT16_TO_UINT8).astype(np.uint8)
-    if image.dtype != np.uint8:
-        raise ValueError(f"{name}: unsupported pixel type {image.dtype} (expected 8- or 16-bit)")
-    if image.ndim == 2:
-        image = image[..., None]
-    channels = image.shape[2]
-    if channels == 1:
-        return np.repeat(image, RGB_CHANNELS, axis=2)
-    if channels == RGB_CHANNELS:
-        return np.ascontiguousarray(image)
-    if channels == RGB_CHANNELS + 1:
-        alpha = image[..., 3:].astype(np.float32) / UINT8_MAX
-        background = float(UINT8_MAX) if alpha_background == "white" else 0.0
-        rgb = image[..., :3].astype(np.float32) * alpha + background * (1.0 - alpha)
-        return np.clip(np.round(rgb), 0, UINT8_MAX).astype(np.uint8)
-    raise ValueError(f"{name}: unsupported channel count {channels} (expected 1, 3 or 4)")
-
-
-def read_image(path: Path, alpha_background: str = "white") -> np.ndarray:
-    """Read an image file as uint8 [H, W, 3] RGB (see :func:`to_rgb8`).
-
-    Raises:
-        FileNotFoundError: the file does not exist.
-        ValueError: the file cannot be decoded.
-    """
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: image file not found")
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None:
-        raise ValueError(f"{path}: cannot decode the image")
-    if raw.ndim == 3 and raw.shape[2] == RGB_CHANNELS:
-        raw = cv2.cvtColor(raw, cv2.COLOR_BGR2RGB)
-    elif raw.ndim == 3 and raw.shape[2] == RGB_CHANNELS + 1:
-        raw = cv2.cvtColor(raw, cv2.COLOR_BGRA2RGBA)
-    return to_rgb8(raw, str(path), alpha_background)
+def read_image(path: Path, alpha_background: str = "white", bits: Optional[int] = None) -> np.ndarray:
+    """Read one image file as uint8 [H, W, 3] RGB (its bit depth judged alone; see :mod:`.frames`)."""
+    return read_frames([Path(path)], alpha_background, bits)[0][0]
 
 
 def downscale_image(image: np.ndarray, factor: int) -> np.ndarray:
@@ -351,14 +325,61 @@ def select_indices(n: int, config: InputConfig, source: str) -> List[int]:
 # Events
 
 
-def _open_events(path: Path, frame_size: Tuple[int, int], t_offset_us: Optional[int]) -> EventSource:
-    """Open an event file; when it stores no sensor size the frames' size is used."""
+def _open_in_unit(path: Path, frame_size: Tuple[int, int], t_offset_us: Optional[int], unit: str) -> EventSource:
+    """Open an event file in a time unit; when it stores no sensor size the frames' size is used."""
     try:
-        return open_event_source(path, None, t_offset_us)
+        return open_event_source(path, None, t_offset_us, unit)
     except ValueError as err:
         if NO_SENSOR_SIZE_MESSAGE not in str(err):
             raise
-        return open_event_source(path, frame_size, t_offset_us)
+        return open_event_source(path, frame_size, t_offset_us, unit)
+
+
+def exposure_span_us(exposures: Sequence[Exposure]) -> int:
+    """µs from the first exposure's start to the last one's end."""
+    return int(max(e.end_us for e in exposures) - min(e.start_us for e in exposures))
+
+
+def _open_events(
+    path: Path, frame_size: Tuple[int, int], t_offset_us: Optional[int], unit: str, exposures: Sequence[Exposure],
+    notes: List[str],
+) -> EventSource:
+    """Open an event file in the given unit, or detect the unit from the spans ("auto") and say so in ``notes``.
+
+    A given unit under which the spans disagree (another unit fits them better) is kept, with a note.
+    """
+    default = native_time_unit(path) if unit == AUTO_UNIT else unit
+    source = _open_in_unit(path, frame_size, t_offset_us, default)
+    try:
+        t_first, t_last = source.t_range()
+    except ValueError:
+        return source  # no events: the coverage check says so
+    detected, reason = detect_time_unit((t_last - t_first) / US_PER_TICK[default], exposure_span_us(exposures), default)
+    if unit != AUTO_UNIT:
+        if detected != unit:
+            notes.append(f"{path}: event timestamps read in {unit} as given, but {reason} (is --events-time-unit right?)")
+        return source
+    notes.append(f"{path}: event timestamps read in {detected} (auto-detected: {reason}; --events-time-unit overrides)")
+    if detected == default:
+        return source
+    source.close()
+    return _open_in_unit(path, frame_size, t_offset_us, detected)
+
+
+def cover_frames(
+    events: EventSource, exposures: Sequence[Exposure], names: Sequence[str], selected: Sequence[int], k: int, hint: str
+) -> Tuple[List[int], List[str]]:
+    """Positions of the frames the events cover and the notices (see :mod:`edygs_ns.events.coverage`).
+
+    Raises:
+        ValueError: no events, or too many frames not covered (names the options that fix it).
+    """
+    try:
+        t_first, t_last = events.t_range()
+    except ValueError as err:
+        raise ValueError(f"{events.name}: holds no events, so no exposure is covered") from err
+    coverage = measure_coverage(t_first, t_last, len(events), exposures, k)
+    return coverage.kept, resolve_coverage(coverage, exposures, names, selected, events.name, hint)
 
 
 def check_sensor_matches(events_name: str, sensor_size: Tuple[int, int], frame_name: str, frame_shape: Sequence[int]) -> None:
@@ -480,15 +501,23 @@ def _finish_capture(
     config: InputConfig,
     k: int,
     selected: List[int],
+    notes: Sequence[str] = (),
+    hint: str = COVERAGE_HINT,
 ) -> Capture:
-    """Check the frames against the events, downscale both, build the Capture."""
+    """Check the frames against the events, drop the frames they do not cover, downscale both, build the Capture."""
     shape = frames[0].shape
     for frame, name in zip(frames, names):
         if frame.shape != shape:
             raise ValueError(f"{name}: frame is {frame.shape[1]}x{frame.shape[0]} but {names[0]} is {shape[1]}x{shape[0]}")
+    notes = list(notes)
+    dropped: List[int] = []
     if events is not None:
         check_sensor_matches(events_name, events.sensor_size, names[0], shape)
-        check_event_coverage(events, exposures, names, k, hint=COVERAGE_HINT)
+        kept, coverage_notes = cover_frames(events, exposures, names, selected, k, hint)
+        notes += coverage_notes
+        dropped = [selected[i] for i in range(len(selected)) if i not in set(kept)]
+        frames, names = [frames[i] for i in kept], [names[i] for i in kept]
+        exposures, selected = [exposures[i] for i in kept], [selected[i] for i in kept]
         if config.downscale > 1:
             events = DownscaledEventSource(events, config.downscale)
     frames = [downscale_image(f, config.downscale) for f in frames]
@@ -502,18 +531,21 @@ def _finish_capture(
         binned_events=None,
         event_count_scale=1.0 / config.downscale**2,
         selected=selected,
+        dropped=dropped,
+        notes=notes,
     )
 
 
 def load_aedat4(config: InputConfig, k: int) -> Capture:
     """Input form (a): frames, exposures and events of one AEDAT4 recording."""
     path = Path(config.aedat4)
-    events, aps = read_aedat4(path)
+    events, aps = read_aedat4(path, None if config.events_time_unit == AUTO_UNIT else config.events_time_unit)
     if not aps:
         raise ValueError(f"{path}: no APS frames in the recording; edygs-process needs the blurry frames")
     indices = select_indices(len(aps), config, str(path))
     names = [f"{path.name} frame {i}" for i in indices]
-    frames = [to_rgb8(aps[i].image, name) for i, name in zip(indices, names)]
+    frames, depth_note = frames_to_rgb8([aps[i].image for i in indices], names, config.alpha_background, config.frame_bits)
+    notes = [f"{path}: {depth_note}"] if depth_note else []
     exposures = []
     for i in indices:
         start, end = aps[i].exposure_start_us, aps[i].exposure_end_us
@@ -521,7 +553,8 @@ def load_aedat4(config: InputConfig, k: int) -> Capture:
             raise ValueError(f"{path}: frame {i} has exposure end {end} µs not after its start {start} µs")
         exposures.append(Exposure(frame=i, start_us=int(start), end_us=int(end), file=path))
     source = ArrayEventSource(events, name=str(path))
-    capture = _finish_capture("aedat4", str(path), frames, names, exposures, source, str(path), config, k, indices)
+    capture = _finish_capture("aedat4", str(path), frames, names, exposures, source, str(path), config, k, indices,
+                              notes, AEDAT4_COVERAGE_HINT)
     capture.input_paths = [path]
     return capture
 
@@ -537,11 +570,13 @@ def load_exposure_table(config: InputConfig, k: int) -> Capture:
     indices = select_indices(len(all_exposures), config, str(csv_path))
     exposures = [all_exposures[i] for i in indices]
     names = [str(e.file) for e in exposures]
-    frames = [read_image(e.file, config.alpha_background) for e in exposures]
-    events = _open_events(Path(config.events), frames[0].shape[:2], config.events_t_offset_us)
+    frames, depth_note = read_frames([e.file for e in exposures], config.alpha_background, config.frame_bits)
+    notes = [f"{csv_path}: {depth_note}"] if depth_note else []
+    events = _open_events(Path(config.events), frames[0].shape[:2], config.events_t_offset_us, config.events_time_unit,
+                          exposures, notes)
     try:
         capture = _finish_capture(
-            "exposures", str(csv_path), frames, names, exposures, events, str(config.events), config, k, indices
+            "exposures", str(csv_path), frames, names, exposures, events, str(config.events), config, k, indices, notes
         )
     except Exception:
         events.close()
@@ -563,18 +598,37 @@ def _e2nerf_exposures(n: int, files: Sequence[Path]) -> List[Exposure]:
     ]
 
 
+def e2nerf_events_file(folder: Path) -> Path:
+    """The E2NeRF event file of a scene folder: events.pt, else event.pt (the name in E2NeRF's README).
+
+    Raises:
+        FileNotFoundError: neither exists.
+    """
+    for name in E2NERF_EVENT_FILES:
+        if (folder / name).is_file():
+            return folder / name
+    raise FileNotFoundError(f"{folder}: E2NeRF event bins not found (looked for {' and '.join(E2NERF_EVENT_FILES)})")
+
+
 def _e2nerf_bins(path: Path, n_views: int, height: int, width: int, k: int) -> np.ndarray:
-    """events.pt [views, 4, H*W] as [views, k-1, H, W] float32 (bins merged when k - 1 < 4)."""
+    """events.pt [views, 4, H*W] or [views, 4, H, W] as [views, k-1, H, W] float32 (bins merged when k - 1 < 4)."""
     import torch
 
     if not path.is_file():
         raise FileNotFoundError(f"{path}: E2NeRF event bins not found")
-    tensor = torch.load(path, map_location="cpu", weights_only=True)
-    bins = np.asarray(tensor.float().numpy() if hasattr(tensor, "numpy") else tensor, dtype=np.float32)
-    if bins.ndim != 3 or bins.shape[0] != n_views or bins.shape[1] != E2NERF_BINS or bins.shape[2] != height * width:
+    try:
+        tensor = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # pickle, zip and torch errors alike: one line naming the file
+        raise ValueError(f"{path}: cannot read as a torch tensor file ({type(err).__name__}: {err})") from None
+    if not isinstance(tensor, torch.Tensor):
+        raise ValueError(f"{path}: expected one tensor of event bins, got a {type(tensor).__name__}")
+    bins = tensor.float().numpy()
+    flat_ok = bins.ndim == 3 and bins.shape[2] == height * width
+    grid_ok = bins.ndim == 4 and bins.shape[2:] == (height, width)
+    if not (flat_ok or grid_ok) or bins.shape[0] != n_views or bins.shape[1] != E2NERF_BINS:
         raise ValueError(
-            f"{path}: expected event bins of shape ({n_views}, {E2NERF_BINS}, {height * width}) for {n_views} "
-            f"{width}x{height} frames, got {tuple(bins.shape)}"
+            f"{path}: expected event bins of shape ({n_views}, {E2NERF_BINS}, {height * width}) or "
+            f"({n_views}, {E2NERF_BINS}, {height}, {width}) for {n_views} {width}x{height} frames, got {tuple(bins.shape)}"
         )
     if E2NERF_BINS % (k - 1) != 0:
         raise ValueError(f"{path}: E2NeRF stores {E2NERF_BINS} event bins per frame; k - 1 must divide it, got k={k}")
@@ -588,7 +642,17 @@ def _e2nerf_latent_pose_indices(k: int) -> List[int]:
     return [E2NERF_FIRST_LATENT_POSE + j * step for j in range(k)]
 
 
-def _load_e2nerf_blender(folder: Path, config: InputConfig, k: int) -> Tuple[List[np.ndarray], List[Path], np.ndarray, Intrinsics, Tuple[float, float]]:
+def _read_scene_frames(folder: Path, files: Sequence[Path], config: InputConfig, notes: List[str]) -> List[np.ndarray]:
+    """A scene's frames as uint8 RGB with one bit depth; the depth note (if any) joins ``notes``."""
+    frames, note = read_frames(files, config.alpha_background, config.frame_bits)
+    if note:
+        notes.append(f"{folder}: {note}")
+    return frames
+
+
+def _load_e2nerf_blender(
+    folder: Path, config: InputConfig, k: int, notes: List[str]
+) -> Tuple[List[np.ndarray], List[Path], np.ndarray, Intrinsics, Tuple[float, float]]:
     """Frames, files, per-latent c2w [n_all, k, 4, 4], intrinsics and depth range of a Blender-style scene."""
     meta_path = folder / E2NERF_TRAIN_JSON
     meta = json.loads(meta_path.read_text())
@@ -608,13 +672,15 @@ def _load_e2nerf_blender(folder: Path, config: InputConfig, k: int) -> Tuple[Lis
         poses.append(matrices[wanted])
     if not files:
         raise FileNotFoundError(f"{folder / E2NERF_TRAIN_DIR}: no training image r_<i>.png for the frames of {meta_path}")
-    frames = [read_image(f, config.alpha_background) for f in files]
+    frames = _read_scene_frames(folder, files, config, notes)
     h, w = frames[0].shape[:2]
     focal = 0.5 * w / float(np.tan(0.5 * float(meta["camera_angle_x"])))
     return frames, files, np.stack(poses), Intrinsics(w, h, focal, focal, w / 2.0, h / 2.0), E2NERF_BLENDER_DEPTH_RANGE
 
 
-def _load_e2nerf_llff(folder: Path, config: InputConfig, k: int) -> Tuple[List[np.ndarray], List[Path], np.ndarray, Intrinsics, Tuple[float, float]]:
+def _load_e2nerf_llff(
+    folder: Path, config: InputConfig, k: int, notes: List[str]
+) -> Tuple[List[np.ndarray], List[Path], np.ndarray, Intrinsics, Tuple[float, float]]:
     """Frames, files, per-latent c2w, intrinsics and depth range of an LLFF-style (real) scene."""
     rows = np.load(folder / E2NERF_LLFF_POSES)
     if rows.ndim != 2 or rows.shape[1] != LLFF_ROW_LENGTH:
@@ -629,7 +695,7 @@ def _load_e2nerf_llff(folder: Path, config: InputConfig, k: int) -> Tuple[List[n
             f"{folder / E2NERF_LLFF_POSES}: {rows.shape[0]} pose rows for {len(files)} frames; "
             f"expected {latents_per_frame} per frame"
         )
-    frames = [read_image(f, config.alpha_background) for f in files]
+    frames = _read_scene_frames(folder, files, config, notes)
     mats = rows[:, : LLFF_POSE_SHAPE[0] * LLFF_POSE_SHAPE[1]].reshape(-1, *LLFF_POSE_SHAPE)
     # LLFF rotation columns are (down, right, back); OpenGL wants (right, up, back).
     c2w = np.tile(np.eye(4), (len(mats), 1, 1))
@@ -652,11 +718,14 @@ def load_e2nerf(config: InputConfig, k: int) -> Capture:
     folder = Path(config.e2nerf)
     if not folder.is_dir():
         raise FileNotFoundError(f"{folder}: E2NeRF scene folder not found")
+    if config.events_time_unit != AUTO_UNIT:
+        raise ValueError(f"{folder}: --events-time-unit does not apply to --e2nerf (its events are pre-binned, without timestamps)")
+    notes: List[str] = []
     if (folder / E2NERF_TRAIN_JSON).is_file():
-        loaded = _load_e2nerf_blender(folder, config, k)
+        loaded = _load_e2nerf_blender(folder, config, k, notes)
         pose_file = folder / E2NERF_TRAIN_JSON
     elif (folder / E2NERF_LLFF_POSES).is_file():
-        loaded = _load_e2nerf_llff(folder, config, k)
+        loaded = _load_e2nerf_llff(folder, config, k, notes)
         pose_file = folder / E2NERF_LLFF_POSES
     else:
         raise FileNotFoundError(f"{folder}: neither {E2NERF_TRAIN_JSON} (synthetic) nor {E2NERF_LLFF_POSES} (real) found")
@@ -664,13 +733,14 @@ def load_e2nerf(config: InputConfig, k: int) -> Capture:
     if E2NERF_BINS % (k - 1) != 0:
         raise ValueError(f"{folder}: E2NeRF stores {E2NERF_BINS} event bins per frame; k - 1 must divide it, got k={k}")
     h, w = frames[0].shape[:2]
-    bins = _e2nerf_bins(folder / E2NERF_EVENTS, len(frames), h, w, k)
+    events_file = e2nerf_events_file(folder)
+    bins = _e2nerf_bins(events_file, len(frames), h, w, k)
     indices = select_indices(len(frames), config, str(folder))
     all_exposures = _e2nerf_exposures(len(frames), files)
     exposures = [all_exposures[i] for i in indices]
     names = [str(files[i]) for i in indices]
     capture = _finish_capture(
-        "e2nerf", str(folder), [frames[i] for i in indices], names, exposures, None, "", config, k, indices
+        "e2nerf", str(folder), [frames[i] for i in indices], names, exposures, None, "", config, k, indices, notes
     )
     capture.binned_events = downscale_counts(bins[indices], config.downscale)
     capture.event_count_scale = 1.0  # area averaging is already applied to the stored bins
@@ -680,7 +750,7 @@ def load_e2nerf(config: InputConfig, k: int) -> Capture:
         source=str(pose_file),
         depth_range=depth_range,
     )
-    capture.input_paths = [pose_file, folder / E2NERF_EVENTS] + [files[i] for i in indices]
+    capture.input_paths = [pose_file, events_file] + [files[i] for i in indices]
     return capture
 
 
@@ -688,26 +758,38 @@ def load_evdeblurnerf(config: InputConfig, k: int) -> Capture:
     """Input form (c): an EvDeblurNeRF scene: blurry frames with exposures, raw events, a camera path."""
     from edygs_ns.data.layouts.evdeblurnerf import EVENTS_FILE, TIMESTAMPS_FILE, read_evdeblurnerf_folder
 
-    scene = read_evdeblurnerf_folder(
-        Path(config.evdeblurnerf), config.evdeblurnerf_events_unit, config.evdeblurnerf_timestamps_unit
-    )
+    unit = config.evdeblurnerf_events_unit
+    if config.events_time_unit != AUTO_UNIT:
+        if config.events_time_unit not in ("us", "ns"):
+            raise ValueError(f"{config.evdeblurnerf}: EvDeblurNeRF events are in us or ns, got --events-time-unit "
+                             f"{config.events_time_unit}")
+        unit = config.events_time_unit
+    scene = read_evdeblurnerf_folder(Path(config.evdeblurnerf), unit, config.evdeblurnerf_timestamps_unit)
     indices = select_indices(len(scene.blurry), config, str(scene.root))
     exposures = scene.exposures(indices)
     names = [str(e.file) for e in exposures]
-    frames = [read_image(e.file, config.alpha_background) for e in exposures]
+    notes: List[str] = []
+    frames = _read_scene_frames(scene.root, [e.file for e in exposures], config, notes)
+    if scene.events_unit_detected:
+        notes.append(f"{scene.root / EVENTS_FILE}: event timestamps read in {scene.events_unit} (auto-detected from "
+                     "the spans of the events and the images; --events-time-unit overrides)")
     events = scene.open_events()
     hint = (f"check {EVENTS_FILE} and {TIMESTAMPS_FILE}; the events were read in {scene.events_unit}"
             + (" (detected)" if scene.events_unit_detected else "")
-            + ": see --evdeblurnerf-events-unit and --evdeblurnerf-timestamps-unit")
+            + ": see --events-time-unit and --evdeblurnerf-timestamps-unit")
     try:
         shape = frames[0].shape
         for frame, name in zip(frames, names):
             if frame.shape != shape:
                 raise ValueError(f"{name}: frame is {frame.shape[1]}x{frame.shape[0]} but {names[0]} is {shape[1]}x{shape[0]}")
-        check_event_coverage(events, exposures, names, k, hint=hint)
+        kept, coverage_notes = cover_frames(events, exposures, names, indices, k, hint)
+        dropped = [indices[i] for i in range(len(indices)) if i not in set(kept)]
+        frames, names = [frames[i] for i in kept], [names[i] for i in kept]
+        exposures, indices = [exposures[i] for i in kept], [indices[i] for i in kept]
         capture = _finish_capture(
-            "evdeblurnerf", str(scene.root), frames, names, exposures, None, "", config, k, indices
+            "evdeblurnerf", str(scene.root), frames, names, exposures, None, "", config, k, indices, notes + coverage_notes
         )
+        capture.dropped = dropped
     except Exception:
         events.close()
         raise
