@@ -101,3 +101,29 @@ def test_check_frames_match(tmp_path):
     check_frames_match(exposures, frame_files, str(csv_path))
     with pytest.raises(ValueError, match=re.escape(str(csv_path)) + r".*2 frame image\(s\) but 3 exposure"):
         check_frames_match(exposures, frame_files[:2], str(csv_path))
+
+
+def test_overlapping_exposures_name_the_line(tmp_path):
+    csv_path = make_capture(tmp_path)
+    write_rows(csv_path, ["0,0,100,frames/0000.png", "1,90,150,frames/0001.png"])
+    with pytest.raises(ValueError, match=re.escape(str(csv_path)) + r", line 3: exposure of frame 1 \[90, 150\] µs "
+                                                                    r"overlaps the previous exposure \(frame 0: \[0, 100\]"):
+        read_exposures(csv_path)
+
+
+def test_backwards_exposures_name_the_line(tmp_path):
+    csv_path = make_capture(tmp_path)
+    write_rows(csv_path, ["0,1000,1100,frames/0000.png", "1,1200,1300,frames/0001.png", "2,500,600,frames/0002.png"])
+    with pytest.raises(ValueError, match=re.escape(str(csv_path)) + r", line 4: exposure of frame 2 .* goes backwards"):
+        read_exposures(csv_path)
+    write_rows(csv_path, ["0,0,100,frames/0000.png", "1,100,200,frames/0001.png"])  # back to back is fine
+    assert len(read_exposures(csv_path)) == 2
+
+
+def test_exposure_sequence_of_a_recording(tmp_path):
+    from edygs_ns.events.exposures import check_exposure_sequence
+
+    rows = [Exposure(0, 0, 100, tmp_path), Exposure(1, 50, 150, tmp_path)]
+    with pytest.raises(ValueError, match=r"rec\.aedat4: exposure of frame 1 \[50, 150\] µs overlaps"):
+        check_exposure_sequence(rows, "rec.aedat4")
+    check_exposure_sequence(rows[:1], "rec.aedat4")

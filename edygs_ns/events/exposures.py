@@ -2,7 +2,8 @@
 
 CSV format (docs/layouts.md), header exactly ``frame,exposure_start_us,exposure_end_us,file``;
 one row per blurry frame, frames strictly increasing, times in µs on the event clock, ``file``
-relative to the CSV's folder.
+relative to the CSV's folder. A camera exposes one frame at a time: each exposure starts after
+the previous one ended (times never go backwards, exposures never overlap).
 """
 
 from __future__ import annotations
@@ -55,7 +56,8 @@ def read_exposures(csv_path: PathLike) -> List[Exposure]:
     Raises:
         FileNotFoundError: the CSV, or an image it lists, does not exist (names CSV and line).
         ValueError: wrong header, wrong number of fields, non-integer times or frame, end <= start,
-            or frames not strictly increasing; the message names the CSV and the line.
+            frames not strictly increasing, or an exposure that starts before the previous one
+            ended (backwards or overlapping); the message names the CSV and the line.
     """
     csv_path = Path(csv_path)
     if not csv_path.is_file():
@@ -81,6 +83,13 @@ def read_exposures(csv_path: PathLike) -> List[Exposure]:
                 raise ValueError(f"{where}: exposure_end_us {end} must be greater than exposure_start_us {start}")
             if exposures and frame <= exposures[-1].frame:
                 raise ValueError(f"{where}: frame {frame} does not increase (previous row: frame {exposures[-1].frame})")
+            if exposures and start < exposures[-1].end_us:
+                previous = exposures[-1]
+                fault = "goes backwards" if start < previous.start_us else "overlaps the previous exposure"
+                raise ValueError(
+                    f"{where}: exposure of frame {frame} [{start}, {end}] µs {fault} (frame {previous.frame}: "
+                    f"[{previous.start_us}, {previous.end_us}] µs); exposures must follow one another in time"
+                )
             image = (folder / row[3].strip()).resolve()
             if not image.is_file():
                 raise FileNotFoundError(f"{where}: image file {row[3].strip()!r} not found (looked for {image})")
@@ -128,3 +137,22 @@ def check_frames_match(exposures: Sequence[Exposure], frame_files: Sequence[Path
             f"{source}: {len(frame_files)} frame image(s) but {len(exposures)} exposure(s); "
             "every blurry frame needs exactly one exposure row"
         )
+
+
+def check_exposure_sequence(exposures: Sequence[Exposure], source: str) -> None:
+    """Check that exposures follow one another: each starts after the previous one ended.
+
+    Args:
+        exposures: in the order the input lists them.
+        source: what to name in the error (e.g. the recording).
+
+    Raises:
+        ValueError: an exposure goes backwards or overlaps the previous one (names both frames).
+    """
+    for previous, exposure in zip(exposures, exposures[1:]):
+        if exposure.start_us < previous.end_us:
+            fault = "goes backwards" if exposure.start_us < previous.start_us else "overlaps the previous exposure"
+            raise ValueError(
+                f"{source}: exposure of frame {exposure.frame} [{exposure.start_us}, {exposure.end_us}] µs {fault} "
+                f"(frame {previous.frame}: [{previous.start_us}, {previous.end_us}] µs); exposures must follow one another in time"
+            )

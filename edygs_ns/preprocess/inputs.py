@@ -46,7 +46,7 @@ import numpy as np
 
 from edygs_ns.events.accumulate import latent_times_us
 from edygs_ns.events.coverage import measure_coverage, resolve_coverage
-from edygs_ns.events.exposures import Exposure, read_exposures
+from edygs_ns.events.exposures import Exposure, check_exposure_sequence, read_exposures
 from edygs_ns.events.readers import ArrayEventSource, EventSource, native_time_unit, open_event_source, read_aedat4
 from edygs_ns.events.types import EventArray
 from edygs_ns.events.units import AUTO_UNIT, US_PER_TICK, detect_time_unit
@@ -552,6 +552,7 @@ def load_aedat4(config: InputConfig, k: int) -> Capture:
         if end <= start:
             raise ValueError(f"{path}: frame {i} has exposure end {end} µs not after its start {start} µs")
         exposures.append(Exposure(frame=i, start_us=int(start), end_us=int(end), file=path))
+    check_exposure_sequence(exposures, str(path))
     source = ArrayEventSource(events, name=str(path))
     capture = _finish_capture("aedat4", str(path), frames, names, exposures, source, str(path), config, k, indices,
                               notes, AEDAT4_COVERAGE_HINT)
