@@ -52,6 +52,8 @@ VARIANTS: Tuple[Tuple[str, str, Any], ...] = (
 )
 INPUT_SPLIT = "input views"
 NOVEL_SPLIT = "novel views"
+#: The same novel cameras without per-view pose fitting (evaluate_run writes it when it fitted them).
+NOVEL_UNFITTED_SPLIT = "novel views (no pose fit)"
 #: Numbers kept for the reference images (EDI latents, blurry frames) scored on the input views.
 REFERENCE_KEYS = ("psnr", "ssim", "psnr_dynamic", "psnr_static")
 
@@ -121,11 +123,27 @@ def make_scene(cfg: AblationBenchConfig, seed: int) -> Path:
     return scene
 
 
-def train(cfg: AblationBenchConfig, scene: Path, label: str, method: str, ablation: Any, runs: Path) -> Tuple[Path, float]:
-    """ns-train one variant; returns (config.yml, wall seconds)."""
-    name = label.replace(" ", "_").replace("+", "plus").replace("(", "").replace(")", "").replace(",", "")
-    config_path = runs / scene.parent.name / method / name / "config.yml"
-    timing = config_path.parent / "train_seconds.txt"
+#: Written next to a run's config.yml when its ns-train finished (wall seconds): the run is complete.
+TRAIN_SECONDS_FILE = "train_seconds.txt"
+
+
+def run_name(label: str) -> str:
+    """Folder name (ns-train --timestamp) of variant ``label``."""
+    return label.replace(" ", "_").replace("+", "plus").replace("(", "").replace(")", "").replace(",", "")
+
+
+def run_config_path(scene: Path, label: str, method: str, runs: Path) -> Path:
+    """config.yml of variant ``label`` trained on ``scene`` under ``runs`` (finished when
+    TRAIN_SECONDS_FILE is next to it)."""
+    return runs / scene.parent.name / method / run_name(label) / "config.yml"
+
+
+def train(cfg: Any, scene: Path, label: str, method: str, ablation: Any, runs: Path) -> Tuple[Path, float]:
+    """ns-train one variant; returns (config.yml, wall seconds). ``cfg`` needs ``device``,
+    ``iters`` and ``extra_train_args`` (an AblationBenchConfig, or benchmarks/suite.py's config)."""
+    name = run_name(label)
+    config_path = run_config_path(scene, label, method, runs)
+    timing = config_path.parent / TRAIN_SECONDS_FILE
     if config_path.exists() and timing.exists():
         return config_path, float(timing.read_text())
     cmd = [
@@ -167,11 +185,13 @@ def _mean(entry: Any) -> Any:
 
 
 def row_of(metrics: Dict[str, Any], label: str, seconds: float) -> Dict[str, Any]:
-    """The numbers of run ``label`` (its rows in evaluate_run's metrics), flattened."""
+    """The numbers of run ``label`` (its rows in evaluate_run's metrics), flattened: ``input_*``,
+    ``novel_*`` (novel poses fitted per view) and ``novel_nofit_*`` (not fitted; None in metrics
+    written before that split existed)."""
     splits = metrics[label]
     row: Dict[str, Any] = {"train_seconds": seconds}
-    for split, prefix in ((INPUT_SPLIT, "input"), (NOVEL_SPLIT, "novel")):
-        for key in ("psnr", "ssim", "lpips_alex", "mask_iou", "psnr_dynamic", "psnr_static"):
+    for split, prefix in ((INPUT_SPLIT, "input"), (NOVEL_SPLIT, "novel"), (NOVEL_UNFITTED_SPLIT, "novel_nofit")):
+        for key in ("psnr", "ssim", "lpips_alex", "mask_iou", "mask_mean", "psnr_dynamic", "psnr_static"):
             value = _mean(splits.get(split, {}).get(key))
             row[f"{prefix}_{key}"] = value if isinstance(value, (int, float)) else None
     for split, prefix in (("poses (initial)", "ate_initial"), ("poses (refined)", "ate_refined")):

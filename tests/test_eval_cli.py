@@ -22,6 +22,7 @@ from edygs_ns.eval.evaluate import (
     INITIAL_POSES_SPLIT,
     INPUT_SPLIT,
     NOVEL_SPLIT,
+    NOVEL_UNFITTED_SPLIT,
     PER_VIEW_KEY,
     POSE_METRIC_KEYS,
     REGION_PSNR_KEYS,
@@ -98,6 +99,12 @@ def test_evaluate_run_writes_every_metric_and_figure(run_config, tmp_path):
             assert isinstance(values[f"lpips_{net}"], str) and ".pth" in values[f"lpips_{net}"]
         assert len(values[PER_VIEW_KEY]["psnr"]) == n_views == len(values[PER_VIEW_KEY]["time"])
     assert "fitted to its image" in rows[NOVEL_SPLIT]["note"]  # test-time pose fitting ran
+    # the second protocol: the same cameras as mapped by the training-camera Sim(3), not fitted
+    unfitted = rows[NOVEL_UNFITTED_SPLIT]
+    assert unfitted["n"] == 2 and math.isfinite(unfitted["psnr"]["mean"]) and "fitted to its image" not in unfitted["note"]
+    assert unfitted[PER_VIEW_KEY]["time"] == rows[NOVEL_SPLIT][PER_VIEW_KEY]["time"]
+    for split in (INPUT_SPLIT, NOVEL_SPLIT, NOVEL_UNFITTED_SPLIT):  # mean rendered motion mask
+        assert 0.0 <= rows[split]["mask_mean"]["mean"] <= 1.0
     for key in REGION_PSNR_KEYS:  # the fixture's masks split every view into both regions
         assert math.isfinite(rows[INPUT_SPLIT][key]["mean"]) and rows[INPUT_SPLIT][key]["n"] == 9
         assert math.isfinite(stored[EDI_REFERENCE][INPUT_SPLIT][key]["mean"])
@@ -124,6 +131,15 @@ def test_cli_novel_split_only(run_config, tmp_path, monkeypatch):
     rows = json.loads((out / "metrics.json").read_text())["edygs"]
     assert NOVEL_SPLIT in rows and INPUT_SPLIT not in rows
     assert not (out / "psnr_over_time_input.png").exists()
+
+
+def test_no_unfitted_split_without_pose_fitting(run_config, tmp_path):
+    """With no pose fitting, "novel views" already is the unfitted protocol: no second row."""
+    from edygs_ns.eval.novel_pose_fit import NovelPoseFitConfig
+
+    rows = evaluate_run(run_config, tmp_path / "eval", split="novel", max_grids=0, novel_pose_fit=NovelPoseFitConfig(steps=0))["edygs"]
+    assert NOVEL_SPLIT in rows and NOVEL_UNFITTED_SPLIT not in rows
+    assert "fitted to its image" not in rows[NOVEL_SPLIT]["note"]
 
 
 def test_cli_rejects_missing_config(tmp_path):

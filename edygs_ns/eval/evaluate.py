@@ -12,7 +12,9 @@
   ground-truth poses are first moved into the model's frame by the Sim(3) that maps the
   ground-truth training poses onto the refined ones (edygs_ns.eval.pose_alignment explains why),
   then each pose is fitted to its image with the model frozen (edygs_ns.eval.novel_pose_fit;
-  ``novel_pose_fit.steps = 0`` turns that off). The report gives the mean correction.
+  ``novel_pose_fit.steps = 0`` turns that off). The report gives the mean correction. When the
+  poses were fitted, the same cameras are also scored as mapped, without fitting (row
+  "novel views (no pose fit)": what ``ns-render camera-path`` renders from true novel cameras).
 * **poses**: ATE / RPE of the initial (dataparser) and the refined training poses against the
   ground truth after Sim(3) Umeyama alignment, in the ground truth's own units (the dataparser's
   scale and the scale that moved the ground truth into COLMAP's frame are undone), and ATE as a
@@ -20,7 +22,8 @@
 
 Metrics: PSNR, SSIM (edygs_ns.eval.metrics), LPIPS with AlexNet and VGG (reported unavailable,
 never zero, when the backbone weights are missing), motion-mask IoU against the ground-truth
-dynamic masks. Written files, under `output_dir`:
+dynamic masks, and the mean rendered motion mask ("mask_mean", JSON only: near 0 where nothing
+moves). Written files, under `output_dir`:
 
     metrics.json, metrics.md         the table (edygs_ns.eval.report), per-view values in the JSON
     grids/{input,novel}_NNNN.png     blurry input | EDI latent | ours | ground truth | motion mask |
@@ -71,6 +74,9 @@ EvalSplit = Literal["input", "novel", "both"]
 #: Row (split) names of the metrics table.
 INPUT_SPLIT = "input views"
 NOVEL_SPLIT = "novel views"
+#: The novel cameras as mapped by the training-camera Sim(3), without per-view pose fitting
+#: (written only when NOVEL_SPLIT's poses were fitted; otherwise NOVEL_SPLIT is this protocol).
+NOVEL_UNFITTED_SPLIT = "novel views (no pose fit)"
 #: Method rows of the reference images scored against the same ground truth as the input views.
 EDI_REFERENCE = "EDI latent"
 BLURRY_REFERENCE = "blurry input"
@@ -404,12 +410,16 @@ def evaluate_group(
                     values.update(region_psnr(pred, gt, gt_mask))
                     if mask is not None:
                         values["mask_iou"] = mask_iou(mask[..., 0].detach().cpu(), gt_mask, MASK_THRESHOLD)
+                if mask is not None:
+                    values["mask_mean"] = float(mask.detach().float().mean())
                 ours.update(values)
                 edi = _score_reference(group.edi_images, i, gt.cpu(), edi_set, gt_mask)
                 blurry = _score_reference(group.blurry_images, i, gt.cpu(), blurry_set, gt_mask)
             else:
                 edi = _read_rgb(group.edi_images[i]) if group.edi_images is not None else None
                 blurry = _read_rgb(group.blurry_images[i]) if group.blurry_images is not None else None
+                if mask is not None:
+                    ours.add("mask_mean", float(mask.detach().float().mean()))
             if i in wanted:
                 if edi is not None:
                     row["EDI latent"] = edi.numpy()
@@ -501,11 +511,15 @@ def evaluate_pipeline(
         notes.append(f"{INPUT_SPLIT}: {group.note}; {EDI_REFERENCE} / {BLURRY_REFERENCE} rows score those images against the same ground truth.")
     if split in ("novel", "both"):
         sim3, sim3_note = novel_alignment(poses, align_novel)
-        novel = novel_views(pipeline, sim3, sim3_note)
-        novel = fit_group_poses(model, novel, novel_pose_fit or NovelPoseFitConfig())
+        aligned = novel_views(pipeline, sim3, sim3_note)
+        novel = fit_group_poses(model, aligned, novel_pose_fit or NovelPoseFitConfig())
         rows[NOVEL_SPLIT], _ = evaluate_group(model, novel, lpips, grid_dir, max_grids)
         psnr_plots.append((novel, rows[NOVEL_SPLIT], {}))
         notes.append(f"{NOVEL_SPLIT}: {novel.note}.")
+        if novel is not aligned:  # poses were fitted: also score the cameras as mapped (no grids)
+            unfitted = replace(aligned, name=NOVEL_UNFITTED_SPLIT, slug="novel_nofit")
+            rows[NOVEL_UNFITTED_SPLIT], _ = evaluate_group(model, unfitted, lpips, None, max_grids)
+            notes.append(f"{NOVEL_UNFITTED_SPLIT}: {aligned.note}; no per-view pose fitting.")
     rows.update(pose_rows(poses))
     notes.append("Poses: ATE / RPE in the ground truth's units; ate_frac = ATE / largest "
                  "distance between two ground-truth camera centres (in metrics.json).")  # fmt: skip
@@ -559,7 +573,8 @@ def evaluate_run(
     Returns:
         The metrics as written to metrics.json: {method: {split: {metric: value}}}. The run's
         rows are INPUT_SPLIT / NOVEL_SPLIT (IMAGE_METRIC_KEYS; each value {"mean", "std", "n"}
-        or a reason string when unavailable; per-view values under PER_VIEW_KEY) and
+        or a reason string when unavailable; per-view values under PER_VIEW_KEY), with
+        NOVEL_UNFITTED_SPLIT when the novel poses were fitted, and
         INITIAL_POSES_SPLIT / REFINED_POSES_SPLIT (POSE_METRIC_KEYS, floats or reason strings);
         the methods EDI_REFERENCE / BLURRY_REFERENCE hold the reference images' PSNR / SSIM on
         the input views when the scene has ground truth.
@@ -574,5 +589,5 @@ def evaluate_run(
 
 __all__: List[str] = [
     "evaluate_run", "evaluate_pipeline", "input_views", "novel_views", "ViewGroup",
-    "INPUT_SPLIT", "NOVEL_SPLIT", "INITIAL_POSES_SPLIT", "REFINED_POSES_SPLIT", "IMAGE_METRIC_KEYS", "POSE_METRIC_KEYS",
+    "INPUT_SPLIT", "NOVEL_SPLIT", "NOVEL_UNFITTED_SPLIT", "INITIAL_POSES_SPLIT", "REFINED_POSES_SPLIT", "IMAGE_METRIC_KEYS", "POSE_METRIC_KEYS",
 ]  # fmt: skip
