@@ -45,7 +45,7 @@ def textured_frames(n: int, size: Tuple[int, int] = SIZE, shift_px: int = SHIFT_
     """n uint8 [H, W, 3] views of one smooth random texture, shifted by shift_px per frame."""
     rng = np.random.default_rng(seed)
     h, w = size
-    big = cv2.GaussianBlur(rng.integers(0, 256, (h + 4 * n * shift_px, w + 4 * n * shift_px)).astype(np.float32), (0, 0), 1.5)
+    big = cv2.GaussianBlur(rng.integers(0, 256, (h + 16, w + 16 + n * shift_px)).astype(np.float32), (0, 0), 1.5)
     big = cv2.normalize(big, None, 20, 235, cv2.NORM_MINMAX)
     views = [big[8: 8 + h, 8 + i * shift_px: 8 + i * shift_px + w] for i in range(n)]
     return [np.repeat(v.astype(np.uint8)[..., None], 3, axis=2) for v in views]

@@ -17,6 +17,7 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from edygs_ns.compat import allow_nerfstudio_checkpoints
+from edygs_ns.configs.run_length import CPU_DEFORMATION, CPU_ITERATIONS, shape_trainer
 from edygs_ns.data.datamanager import EdygsDataManagerConfig
 from edygs_ns.data.dataparser import EdygsDataParserConfig
 from edygs_ns.model.edygs_model import EdygsModelConfig
@@ -84,6 +85,17 @@ def blurry_baseline_config() -> TrainerConfig:
     return base
 
 
+def cpu_variant(config: TrainerConfig) -> TrainerConfig:
+    """``config`` made for a CPU: the demo's 3000-iteration run shape, a 64x4 deformation MLP."""
+    config = shape_trainer(config, CPU_ITERATIONS)
+    depth, width, skip = CPU_DEFORMATION
+    deformation = replace(config.pipeline.model.deformation, depth=depth, width=width, skip_layer=skip)
+    config.pipeline = replace(config.pipeline, model=replace(config.pipeline.model, deformation=deformation))
+    config.method_name = f"{config.method_name}-cpu"
+    config.machine.device_type = "cpu"
+    return config
+
+
 edygs_method = MethodSpecification(
     config=edygs_trainer_config(),
     description="EDyGS: sharp dynamic 3D Gaussians from a blurry monocular video and events",
@@ -92,4 +104,14 @@ edygs_method = MethodSpecification(
 blurry_baseline_method = MethodSpecification(
     config=blurry_baseline_config(),
     description="Baseline: deformable 3D Gaussians trained on the blurry frames (no events)",
+)
+
+edygs_cpu_method = MethodSpecification(
+    config=cpu_variant(edygs_trainer_config()),
+    description="EDyGS sized for a CPU: 3000 iterations, 64x4 deformation MLP (the demo's settings)",
+)
+
+blurry_baseline_cpu_method = MethodSpecification(
+    config=cpu_variant(blurry_baseline_config()),
+    description="The blurry-input baseline sized for a CPU (3000 iterations, 64x4 deformation MLP)",
 )

@@ -50,6 +50,30 @@ def run_length_args(iters: int, shape: RunShape = RunShape()) -> List[str]:
     ]
 
 
+#: Deformation MLP of CPU runs (hidden layers, units, skip layer): the paper's 256x8 costs several
+#: times more per step on a CPU and did not fit the demo's 15-minute budget.
+CPU_DEFORMATION = (4, 64, 2)
+#: Iterations of a CPU run (the demo's length).
+CPU_ITERATIONS = 3000
+
+
+def shape_trainer(config, iters: int, shape: RunShape = RunShape()):
+    """``config`` (a nerfstudio TrainerConfig of edygs) with the schedule of an ``iters``-iteration
+    run of the standard shape: the same numbers ``run_length_args`` passes on the command line."""
+    from dataclasses import replace
+
+    run_length_args(iters, shape)  # validates iters
+    model = config.pipeline.model
+    schedule = replace(model.schedule, pose_init_iters=int(iters * shape.pose_init), static_iters=int(iters * shape.static),
+                       dynamic_window_ramp_iters=int(iters * shape.window_ramp))
+    densify = replace(model.densify, refine_start_iter=max(int(iters * shape.refine_start), 1),
+                      refine_stop_iter=int(iters * shape.refine_stop))
+    config.pipeline = replace(config.pipeline, model=replace(model, schedule=schedule, densify=densify))
+    config.max_num_iterations = iters
+    config.steps_per_save = iters
+    return config
+
+
 def main() -> None:
     if len(sys.argv) != 2 or not sys.argv[1].isdigit():
         raise SystemExit("usage: python -m edygs_ns.configs.run_length ITERS")

@@ -1,30 +1,21 @@
-"""Motion evidence and dynamic seeding at the switch from the static to the dynamic phase.
+"""Motion evidence and dynamic seeds, the building blocks of the motion initialisation.
 
 At the end of the static phase the static Gaussians explain every latent except where the scene
-moved. Two things are derived from that, once:
+moved. ``model/motion_init.py`` turns that into moving objects with these pieces:
 
-1. **Motion evidence** per training latent: the static render's colour residual against the EDI
-   latent, box-filtered (a moving object is a blob, pose-error residuals are thin edges) and
-   thresholded at a robust level over the whole clip, ``median + threshold_mads · 1.4826 · MAD``.
-   The dynamic phase's mask-consistency targets are ``M̂ = max(M_static, evidence)``: the rendered
-   static-phase mask plus the regions the static model could not explain.
-2. **Seeds** for the dynamic region: a moving object has no Gaussian of its own after the static
-   phase (a static Gaussian on its path sees it only in a few latents, so the mask regulariser
-   keeps such Gaussians static). The evidence pixels of the reference latent (the one nearest
-   ``reference_time``) are back-projected a little in front of the static depth and become new
-   Gaussians with the EDI colour and a high motion mask; the deformation field then carries them
-   through time.
-3. **Motion initialisation**: by default the seeds are tracked as one rigid body through every
-   latent by photometric alignment (``rigid_track.py``): the track, which turns as well as moves,
-   becomes the deformation's base motion (the MLP learns a residual from zero) and places coverage
-   seeds for the parts of the object that turn into view. Without it (``--pipeline.model.rigid-track.enabled
-   False``) the evidence blob of every latent gives a 3D track point (its centroid back-projected
-   at the blob's static depth, as for the seeds) and the deformation field is first regressed,
-   for the seeds, onto the offsets track(t) − track(t_ref) (a few hundred MLP-only steps, no
-   rendering), so the photometric, event and mask losses refine a motion that already overlaps the
-   object instead of having to discover a displacement larger than the object from zero offsets.
-   Optionally the dynamic phase also starts on latents near the reference time
-   (``training/schedule.py``'s time window).
+- ``motion_evidence``: per training latent, the static render's colour residual against the EDI
+  latent, box-filtered (a moving object is a blob, pose-error residuals are thin edges) and
+  thresholded at a robust level over the whole clip, ``median + threshold_mads · 1.4826 · MAD``.
+- ``seed_gaussians``: a moving object has no Gaussian of its own after the static phase (a static
+  Gaussian on its path sees it only in a few latents, so the mask regulariser keeps such Gaussians
+  static). One evidence region of one latent is back-projected a little in front of the static
+  depth (a round cap at the region's median depth) into new Gaussians with the EDI colour and a
+  high motion mask.
+- ``evidence_track`` + ``fit_motion``: without rigid tracking (``--pipeline.model.rigid-track.enabled
+  False``), the evidence centroid of every latent back-projected at its static depth gives a
+  translation track, and the deformation field is first regressed onto it for the seeds (a few
+  hundred MLP-only steps, no rendering), so the photometric losses refine a motion that already
+  overlaps the object.
 """
 
 from __future__ import annotations

@@ -77,6 +77,10 @@ class ColmapConfig:
     abs_pose_min_num_inliers: int = 15
     """2D-3D inliers needed to register a further latent (COLMAP's default 30 made tiny scenes split
     into several models)."""
+    min_motion_px: float = 2.0
+    """Before COLMAP runs, corners of the first latent are tracked into latents across the clip; when their
+    median shift stays below this (px), the camera is static and COLMAP would register nothing: stop at once
+    and say so (edygs_ns.preprocess.motion_check). 0: skip the check."""
     random_seed: int = 0
     """Seed of COLMAP's RANSAC and mapper (runs with more than one thread can still differ)."""
     extraction_batch: int = 16
@@ -348,6 +352,7 @@ def registration_message(result: ColmapResult, min_fraction: float, shown: int) 
         f"COLMAP registered only {result.num_registered} of {total} latent frames "
         f"({result.num_registered / max(total, 1):.1%}, the minimum is {min_fraction:.0%}). "
         f"Not registered: {listed or 'none'}. No transforms.json was written. Try: a capture with more texture; "
+        "a camera that moves (a static camera gives COLMAP no parallax); "
         "a smaller --frame-stride (more overlap between frames); a lower --k (fewer, cleaner latents); "
         "a larger --colmap.matching-overlap; --colmap.camera-model OPENCV if the lens distorts; "
         "--poses given with known poses (--given-poses FILE); or --min-registered-fraction to accept fewer "

@@ -20,6 +20,7 @@ recorded in ``<output>/.edygs_steps.json``: running again reuses them; ``--overw
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -41,6 +42,7 @@ from edygs_ns.events.exposures import Exposure, read_exposures
 from edygs_ns.preprocess.colmap import ColmapConfig, ColmapResult, registration_message, run_colmap, with_calibration
 from edygs_ns.data.layouts.common import Intrinsics
 from edygs_ns.preprocess.inputs import Capture, InputConfig, calibration_path, load_capture, read_image
+from edygs_ns.preprocess.motion_check import check_camera_moves
 from edygs_ns.preprocess.steps import StepRunner, file_signature, fingerprint, progress_bar
 from edygs_ns.preprocess.writer import (
     REPORT_NAME,
@@ -64,6 +66,8 @@ GIVEN_POSES_NPZ = "given_poses.npz"
 POSES_NPZ = "poses.npz"
 EVENT_MAPS_WORK = "event_maps.npy"
 COLMAP_WORK = "colmap"
+#: Exit status after Ctrl-C (128 + SIGINT, as shells report it).
+INTERRUPTED_EXIT_CODE = 130
 #: Microseconds per second (summaries in seconds).
 US_PER_SECOND = 1_000_000
 #: Largest 8-bit value, for writing latents in [0, 1] as PNG.
@@ -222,8 +226,12 @@ class Pipeline:
             "calibration_source": capture.calibration_source,
             "given_source": given.source if given is not None else None,
             "given_depth_range": list(given.depth_range) if given is not None and given.depth_range else None,
+            "dropped_frames": capture.dropped,
+            "notes": capture.notes,
         }
         (self.work / CAPTURE_JSON).write_text(json.dumps(meta, indent=2))
+        for note in capture.notes:
+            CONSOLE.print(f"[yellow]note[/]: {note}", soft_wrap=True)
         if capture.events is not None:
             t0, t1 = capture.events.t_range()
             events = f"{len(capture.events):,} events over {(t1 - t0) / US_PER_SECOND:.2f} s"
@@ -287,6 +295,7 @@ class Pipeline:
         """COLMAP on the latents, or the given poses with random initial points."""
         names = [p.name for row in self.latent_paths() for p in row]
         if self.config.poses == "colmap":
+            check_camera_moves([row[len(row) // 2] for row in self.latent_paths()], self.config.colmap.min_motion_px)
             colmap, camera = self.colmap_settings()
             result = run_colmap(self.work / "latents", names, self.work / COLMAP_WORK, colmap)
             result.save(self.work / COLMAP_WORK)
@@ -426,9 +435,9 @@ def process(config: ProcessConfig) -> Dict[str, Any]:
         raise ValueError(f"min_registered_fraction must lie in [0, 1], got {config.min_registered_fraction}")
     output = Path(config.output)
     owned = SCENE_ENTRIES + (WORK_DIR_NAME,)
-    runner = StepRunner(output, owned, config.overwrite)
-    runner.prepare(_input_roots(config.inputs))
-    pipeline = Pipeline(config)
+    runner = StepRunner(output, owned, config.overwrite, scratch=(WORK_DIR_NAME,))
+    build = runner.prepare(_input_roots(config.inputs))  # a staging folder when --overwrite replaces a scene
+    pipeline = Pipeline(dataclasses.replace(config, output=build))
     started = time.perf_counter()
     try:
         read_fp = fingerprint("read", _input_signature(config.inputs), _input_settings(config.inputs), config.poses,
@@ -443,8 +452,11 @@ def process(config: ProcessConfig) -> Dict[str, Any]:
         runner.run("poses", poses_fp, pipeline.poses)
         pipeline.check_registration()
         runner.run("write", fingerprint("write", poses_fp), pipeline.write)
-    finally:
+    except BaseException:
         pipeline.close()
+        runner.abandon()
+        raise
+    pipeline.close()
     poses = pipeline.pose_report(pipeline.colmap_result())
     report = {
         "status": "ok",
@@ -456,14 +468,17 @@ def process(config: ProcessConfig) -> Dict[str, Any]:
         "color_space": config.edi.color_space,
         "downscale": config.inputs.downscale,
         "event_count_scale": pipeline.capture_meta()["event_count_scale"],
+        "dropped_frames": pipeline.capture_meta().get("dropped_frames", []),
+        "notes": pipeline.capture_meta().get("notes", []),
         **poses,
         "interpolated_latents": poses["unregistered_latents"],
-        "num_points": _count_points(output),
+        "num_points": _count_points(build),
         "step_seconds": {o.name: round(o.seconds, 3) for o in runner.outcomes},
         "steps_reused": [o.name for o in runner.outcomes if o.reused],
         "wall_seconds_this_run": round(time.perf_counter() - started, 3),
     }
-    _write_report(output / REPORT_NAME, report)
+    _write_report(build / REPORT_NAME, report)
+    runner.commit()
     return report
 
 
@@ -478,9 +493,12 @@ def entrypoint() -> None:
     config = tyro.cli(ProcessConfig)
     try:
         report = process(config)
-    except (RegistrationError, FileExistsError, FileNotFoundError, ValueError) as err:
-        CONSOLE.print(f"[bold red]edygs-process failed:[/] {err}")
+    except (RegistrationError, OSError, ValueError) as err:  # OSError: FileExistsError, FileNotFoundError, I/O
+        CONSOLE.print(f"[bold red]edygs-process failed:[/] {err}", soft_wrap=True)
         sys.exit(1)
+    except KeyboardInterrupt:
+        CONSOLE.print("[bold red]edygs-process interrupted:[/] finished steps are kept; run the same command again to resume")
+        sys.exit(INTERRUPTED_EXIT_CODE)
     interpolated = len(report["interpolated_latents"])
     CONSOLE.print(
         f"[bold]edygs-process[/]: {report['registered_latents']}/{report['total_latents']} latents posed by "
