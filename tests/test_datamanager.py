@@ -121,3 +121,21 @@ def test_blurry_frame_of_the_wrong_size_is_named(scene):
     Image.new("RGB", (scene.width + 1, scene.height)).save(scene.blurry_files[1])
     with pytest.raises(ValueError, match=str(scene.blurry_files[1].name)):
         _manager(scene.root)
+
+
+def test_truncated_latent_png_names_the_file(scene):
+    latent = sorted((scene.root / "latents").glob("*.png"))[2]
+    latent.write_bytes(latent.read_bytes()[:60])
+    manager = _manager(scene.root)
+    with pytest.raises(ValueError, match=rf"{latent.name}: cannot decode the image .*edygs-process"):
+        manager.cached_train
+
+
+def test_deleted_event_maps_are_named_not_called_a_raw_capture(scene):
+    from edygs_ns.data.layouts import detect_layout
+
+    (scene.root / "event_maps.npy").unlink()
+    with pytest.raises(FileNotFoundError, match=r"event_maps\.npy: event maps of the processed scene .* missing"):
+        detect_layout(scene.root)
+    with pytest.raises(FileNotFoundError, match=r"event_maps\.npy: event maps"):
+        _manager(scene.root)

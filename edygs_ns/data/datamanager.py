@@ -123,7 +123,11 @@ class EdygsDataManager(FullImageDatamanager):
         cached = []
         with get_progress(f"Caching {split} images") as progress:
             for idx in progress.track(range(len(dataset)), total=len(dataset)):
-                data = dataset.get_data(idx, image_type=self.config.cache_images_type)
+                try:
+                    data = dataset.get_data(idx, image_type=self.config.cache_images_type)
+                except (OSError, SyntaxError) as err:  # PIL: truncated or corrupt image files
+                    raise ValueError(f"{dataset.image_filenames[idx]}: cannot decode the image ({err}); "
+                                     "rewrite it (run edygs-process again for a processed scene)") from None
                 height, width = int(dataset.cameras.height[idx]), int(dataset.cameras.width[idx])
                 if tuple(data["image"].shape[:2]) != (height, width):
                     raise ValueError(
@@ -143,10 +147,13 @@ class EdygsDataManager(FullImageDatamanager):
         height, width = int(self.train_cameras.height[0]), int(self.train_cameras.width[0])
         frames = []
         for path in files:
-            with Image.open(path) as img:
-                if (img.height, img.width) != (height, width):
-                    raise ValueError(f"{path}: blurry frame is {(img.height, img.width)} (H, W) but the latents are {(height, width)}")
-                rgb = np.asarray(img.convert("RGB"), dtype=np.float32) / UINT8_MAX
+            try:
+                with Image.open(path) as img:
+                    if (img.height, img.width) != (height, width):
+                        raise ValueError(f"{path}: blurry frame is {(img.height, img.width)} (H, W) but the latents are {(height, width)}")
+                    rgb = np.asarray(img.convert("RGB"), dtype=np.float32) / UINT8_MAX
+            except (OSError, SyntaxError) as err:  # PIL: truncated or corrupt image files
+                raise ValueError(f"{path}: cannot decode the blurry frame ({err})") from None
             frames.append(torch.from_numpy(rgb).to(self.device))
         return frames
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Callable, Dict, Optional, Tuple
 
@@ -9,7 +10,7 @@ from edygs_ns.data.layouts.common import LAYOUT_NAMES, SceneRecord
 from edygs_ns.data.layouts.e2nerf_real import is_e2nerf_real, read_e2nerf_real
 from edygs_ns.data.layouts.e2nerf_synthetic import is_e2nerf_synthetic, read_e2nerf_synthetic
 from edygs_ns.data.layouts.evdeblurnerf import is_evdeblurnerf, read_evdeblurnerf
-from edygs_ns.data.layouts.processed import is_processed, read_processed
+from edygs_ns.data.layouts.processed import DEFAULT_EVENT_MAPS_FILE, TRANSFORMS_FILE, is_processed, read_processed
 
 #: What each layout needs, quoted when a folder matches none.
 LAYOUT_REQUIREMENTS: Dict[str, str] = {
@@ -20,6 +21,8 @@ LAYOUT_REQUIREMENTS: Dict[str, str] = {
 }
 #: Files that mark a raw capture, which must go through edygs-process first.
 RAW_CAPTURE_MARKER = "exposures.csv"
+#: transforms.json keys that only edygs-process writes (a processed scene with a file missing).
+PROCESSED_MARKER_KEYS = ("event_maps", "exposures", "k")
 
 #: Layout name -> (detector, reader) in detection order.
 _LAYOUTS: Dict[str, Tuple[Callable[[Path], bool], Callable[..., SceneRecord]]] = {
@@ -43,11 +46,32 @@ def detect_layout(root: Path) -> str:
     for name, (detect, _) in _LAYOUTS.items():
         if detect(root):
             return name
+    missing = _missing_event_maps(root)
+    if missing is not None:
+        raise FileNotFoundError(
+            f"{missing}: event maps of the processed scene {root} are missing (its transforms.json names them); "
+            "run edygs-process again to rewrite the scene"
+        )
     expected = "; ".join(f"{name}: {needs}" for name, needs in LAYOUT_REQUIREMENTS.items())
     hint = ""
     if (root / RAW_CAPTURE_MARKER).is_file():
         hint = " It looks like a raw capture: run `edygs-process` on it first."
     raise ValueError(f"{root}: not a recognised scene folder. Expected one of: {expected}.{hint}")
+
+
+def _missing_event_maps(root: Path) -> Optional[Path]:
+    """The event maps file a processed scene's transforms.json names, when that file is gone; else None."""
+    transforms = root / TRANSFORMS_FILE
+    if not transforms.is_file():
+        return None
+    try:
+        meta = json.loads(transforms.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        return None
+    if not isinstance(meta, dict) or not all(key in meta for key in PROCESSED_MARKER_KEYS):
+        return None
+    path = root / str(meta.get("event_maps") or DEFAULT_EVENT_MAPS_FILE)
+    return None if path.is_file() else path
 
 
 def read_scene(
