@@ -4,7 +4,9 @@ Steps, each with a progress bar and a one-line summary with its time:
 
 1. ``read``: read and validate the input (frame size vs event sensor, events covering every
    exposure), keep the selected frames (downscaled) in the work folder.
-2. ``edi``: EDI latents for every exposure (k per frame) and the event maps between them.
+2. ``edi``: the event contrast threshold Θ estimated from the frames and events (one log line;
+   ``--theta`` overrides it, see :mod:`edygs_ns.events.contrast`), then EDI latents for every
+   exposure (k per frame) and the event maps between them.
 3. ``poses``: COLMAP on the latents (SIFT, sequential matching, incremental mapping, one
    shared camera), or the poses given by the input (``--poses given``: a synthetic capture's
    gt/transforms.json, E2NeRF or EvDeblurNeRF poses, or ``--given-poses FILE``) with random initial points
@@ -26,7 +28,7 @@ import os
 import shutil
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 from typing import Any, Dict, List, Literal, Optional, Tuple
@@ -37,8 +39,11 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from typing_extensions import Annotated
 
 from edygs_ns.events.accumulate import exposure_bins, latent_times_us
+from edygs_ns.events.color import decode_to_linear
+from edygs_ns.events.contrast import ContrastAccumulator, ThetaChoice, choose_theta, next_start_us, read_span_us
 from edygs_ns.events.edi import EdiConfig, edi_from_frame
 from edygs_ns.events.exposures import Exposure, read_exposures
+from edygs_ns.events.readers import ArrayEventSource
 from edygs_ns.preprocess.colmap import ColmapConfig, ColmapResult, registration_message, run_colmap, with_calibration
 from edygs_ns.data.layouts.common import Intrinsics
 from edygs_ns.preprocess.inputs import Capture, InputConfig, calibration_path, load_capture, read_image
@@ -65,6 +70,7 @@ SHARP_GT_WORK = "sharp_gt"
 GIVEN_POSES_NPZ = "given_poses.npz"
 POSES_NPZ = "poses.npz"
 EVENT_MAPS_WORK = "event_maps.npy"
+CONTRAST_JSON = "contrast.json"
 COLMAP_WORK = "colmap"
 #: Exit status after Ctrl-C (128 + SIGINT, as shells report it).
 INTERRUPTED_EXIT_CODE = 130
@@ -88,13 +94,23 @@ class RegistrationError(RuntimeError):
 
 
 @dataclass
+class ProcessEdiConfig(EdiConfig):
+    """EDI settings of edygs-process: as EdiConfig, but Θ is estimated from the capture by default."""
+
+    theta: Optional[float] = None
+    """Event contrast threshold (log-intensity change per event). None (default): estimated from the blurry
+    frames and the events (edygs_ns.events.contrast; reported, and written to transforms.json). A value:
+    used as given (the estimate is still reported)."""
+
+
+@dataclass
 class ProcessConfig:
     """Turn a raw capture (blurry frames + exposures + events) into a trainable EDyGS scene."""
 
     output: Path
     """Folder to write the processed scene into (created)."""
     inputs: Annotated[InputConfig, tyro.conf.arg(name="")] = field(default_factory=InputConfig)
-    edi: Annotated[EdiConfig, tyro.conf.arg(name="")] = field(default_factory=EdiConfig)
+    edi: Annotated[ProcessEdiConfig, tyro.conf.arg(name="")] = field(default_factory=ProcessEdiConfig)
     poses: Literal["colmap", "given"] = "colmap"
     """Where poses come from: COLMAP on the EDI latents, or the input's own poses (GT of a synthetic
     capture, E2NeRF or EvDeblurNeRF poses, or --given-poses FILE) with random initial points."""
@@ -194,6 +210,13 @@ class Pipeline:
     def latent_paths(self) -> List[List[Path]]:
         return [[self.work / "latents" / latent_name(i, j) for j in range(self.k)] for i in range(len(self.exposures()))]
 
+    def theta_choice(self) -> ThetaChoice:
+        """The Θ the edi step chose (and the estimate), kept in the work folder."""
+        path = self.work / CONTRAST_JSON
+        if not path.is_file():  # an edi step finished before Θ was estimated
+            return choose_theta(None, self.config.edi.theta, "processed by an older edygs-process")
+        return ThetaChoice.from_dict(json.loads(path.read_text()))
+
     def times_us(self) -> np.ndarray:
         return np.stack([latent_times_us(e.start_us, e.end_us, self.k) for e in self.exposures()])
 
@@ -273,22 +296,34 @@ class Pipeline:
         capture = self.capture
         blurry = self.blurry_paths()
         total_events = 0.0
-        with progress_bar("EDI latents", n) as advance:
+        contrast = ContrastAccumulator(n)
+        with progress_bar("Event bins", n) as advance:
             for i, exposure in enumerate(exposures):
                 if capture.binned_events is not None:
                     bins = capture.binned_events[i]
-                else:
-                    bins = exposure_bins(capture.events, [exposure], self.k)[0] * meta["event_count_scale"]
+                else:  # one read per exposure, up to the next one: the EDI bins and the Θ fit share it
+                    window = ArrayEventSource(capture.events.window(*read_span_us(exposures, i)), capture.events.name)
+                    bins = exposure_bins(window, [exposure], self.k)[0] * meta["event_count_scale"]
+                    frame = decode_to_linear(read_rgb_png(blurry[i]) / UINT8_MAX, self.config.edi.color_space)
+                    contrast.add(frame, exposure, window.events, next_start_us(exposures, i), meta["event_count_scale"])
                 maps[i] = bins
                 total_events += float(np.abs(bins).sum())
-                latents = edi_from_frame(read_rgb_png(blurry[i]), bins, self.config.edi)
+                advance()
+        reason = "the input's events are pre-binned per exposure" if capture.binned_events is not None else contrast.reason()
+        choice = choose_theta(contrast.estimate(), self.config.edi.theta, reason)
+        CONSOLE.print(choice.line())
+        (self.work / CONTRAST_JSON).write_text(json.dumps(choice.to_dict(), indent=2))
+        edi_config = replace(self.config.edi, theta=choice.theta)
+        with progress_bar("EDI latents", n) as advance:
+            for i in range(n):
+                latents = edi_from_frame(read_rgb_png(blurry[i]), maps[i], edi_config)
                 for j in range(self.k):
                     pixels = np.clip(np.round(latents[j] * UINT8_MAX), 0, UINT8_MAX).astype(np.uint8)
                     write_rgb_png(self.work / "latents" / latent_name(i, j), pixels)
                 advance()
         maps.flush()
         del maps
-        return (f"{n * self.k} latents from {n} frames (k={self.k}, theta={self.config.edi.theta}, "
+        return (f"{n * self.k} latents from {n} frames (k={self.k}, theta={choice.theta:.3f} {choice.source}, "
                 f"{self.config.edi.color_space}), total |signed bin count| {total_events:,.0f}")
 
     def poses(self) -> str:
@@ -406,7 +441,7 @@ class Pipeline:
         content = SceneContent(
             blurry=self.blurry_paths(), latents=self.latent_paths(), event_maps=self.work / EVENT_MAPS_WORK,
             exposures=exposures, times_us=times, c2w=c2w, intrinsics=intrinsics, distorted_camera=distorted,
-            points_xyz=xyz, points_rgb=rgb, k=k, theta=self.config.edi.theta,
+            points_xyz=xyz, points_rgb=rgb, k=k, theta=self.theta_choice().theta,
             color_space=self.config.edi.color_space, pose_source=self.config.poses,
             gt_dir=gt_dir, gt_frame_map={e.frame: i for i, e in enumerate(exposures)},
         )
@@ -433,6 +468,8 @@ def process(config: ProcessConfig) -> Dict[str, Any]:
     """
     if not 0.0 <= config.min_registered_fraction <= 1.0:
         raise ValueError(f"min_registered_fraction must lie in [0, 1], got {config.min_registered_fraction}")
+    if config.edi.theta is not None and not config.edi.theta > 0:
+        raise ValueError(f"--theta must be positive, got {config.edi.theta}")
     output = Path(config.output)
     owned = SCENE_ENTRIES + (WORK_DIR_NAME,)
     runner = StepRunner(output, owned, config.overwrite, scratch=(WORK_DIR_NAME,))
@@ -464,7 +501,9 @@ def process(config: ProcessConfig) -> Dict[str, Any]:
         "input_form": pipeline.capture_meta()["form"],
         "n_blurry": len(pipeline.exposures()),
         "k": config.edi.k,
-        "theta": config.edi.theta,
+        "theta": pipeline.theta_choice().theta,
+        "theta_source": pipeline.theta_choice().source,
+        "theta_estimate": pipeline.theta_choice().to_dict()["estimate"],
         "color_space": config.edi.color_space,
         "downscale": config.inputs.downscale,
         "event_count_scale": pipeline.capture_meta()["event_count_scale"],
