@@ -35,6 +35,7 @@ from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES, init_gaussians, seed_t
 from edygs_ns.model.splat_export_view import SplatExportView
 from edygs_ns.model.strategy import DensifyConfig, append_gaussians, make_strategy, strategy_info
 from edygs_ns.render.contract import RasterOutputs, select_backend
+from edygs_ns.training.resume import check_resume_phase
 from edygs_ns.training.schedule import (
     CAMERA_GROUP,
     DEFORMATION_GROUP,
@@ -252,6 +253,7 @@ class EdygsModel(SplatExportView):
         """Record the step and apply the phase: what trains, and the static masks at the switch."""
         self.step = step
         self.optimizers = optimizers.optimizers
+        check_resume_phase(step, self.config.schedule, switched=self.static_masks.numel() > 0)  # a changed schedule on --load-dir
         self.apply_phase(self.phase)
         if self.phase is Phase.DYNAMIC and self.config.use_motion_mask and self.static_masks.numel() == 0:
             self.enter_dynamic_phase()
@@ -350,7 +352,7 @@ class EdygsModel(SplatExportView):
                     self.rigid_motion.set(obj.track.centre, obj.reach, obj.size, times, obj.track.rotvecs, obj.track.translations, body=body)
             for obj in found.objects:
                 if not obj.moved:
-                    message += f"\n  still (no seeds): {obj.summary()}"
+                    message += f"\n  no mover (no seeds): {obj.summary()}"
             if movers and not self.config.rigid_track.as_base_motion:
                 offsets = torch.cat([o.track.apply(o.seeds.points) - o.seeds.points for o in movers], dim=1)
             fit_times = times
