@@ -98,6 +98,10 @@ class DynamicSeedingConfig:
     not a mover: no seeds"""
     still_turn: float = 0.2
     """radians; see ``still_shift``"""
+    min_presence: float = 0.25
+    """a mover's evidence (near its track) is found in at least this share of the latents"""
+    min_object_iou: float = 0.3
+    """a mover's tracked silhouette overlaps its evidence by at least this mean IoU"""
 
 
 def box_filter(images: Float[Tensor, "N H W"], size: int) -> Float[Tensor, "N H W"]:

@@ -13,9 +13,11 @@ deformation's base motion (``deformation.RigidMotion``), and the mask-consistenc
    the image are noise.
 3. Each object gets its own seeds (a cap at its own median static depth), its own rigid track
    (``rigid_track.track_rigid``, which follows only the evidence near the object), its coverage
-   seeds and its own reach. An object whose track neither moves in the image by ``still_shift`` of its
-   radius nor turns by ``still_turn`` is a flaw of the static model, not a mover: it gets no seeds and no body.
-   Nothing moving, nothing added.
+   seeds and its own reach. A region is a mover only if its track holds: its evidence is found in
+   at least ``min_presence`` of the latents and the tracked silhouette overlaps it (mean IoU at
+   least ``min_object_iou``; scattered residual noise does neither), and the track moves in the
+   image by ``still_shift`` of its radius or turns by ``still_turn`` (otherwise it is a flaw of the
+   static model). A region that is no mover gets no seeds and no body: nothing moving, nothing added.
 4. M̂ is the evidence near the kept objects' tracks (the rest of the evidence is no object).
 
 The rigid body is the base of the deformation, not its limit: the MLP's residual (zero at the
@@ -62,7 +64,7 @@ class MotionObject:
     def summary(self) -> str:
         turn = float(self.track.rotvecs.norm(dim=-1).max()) * 180.0 / torch.pi
         iou = self.track.iou[torch.isfinite(self.track.iou)] if self.track.iou is not None else torch.zeros(0)
-        fit = f", silhouette IoU {float(iou.mean()):.2f}" if len(iou) else ""
+        fit = f", in {len(iou)} latents, silhouette IoU {float(iou.mean()):.2f}" if len(iou) else ", in no latent"
         return f"latent {self.ref}: {len(self.seeds.points)} seeds, moves {self.shift:.1f} radii in the image, turns {turn:.0f}°{fit}"
 
 
@@ -179,7 +181,10 @@ def initialise_motion(
         radius_px = (float(region.sum()) / torch.pi) ** 0.5
         shift = float(image_shift(track, viewmats, Ks).max()) / max(radius_px, 1e-9)
         turn = float(track.rotvecs.norm(dim=-1).max())
-        moved = shift >= seeding.still_shift or turn >= seeding.still_turn
+        iou = track.iou[torch.isfinite(track.iou)]
+        presence = len(iou) / n
+        consistent = presence >= seeding.min_presence and len(iou) > 0 and float(iou.mean()) >= seeding.min_object_iou
+        moved = consistent and (shift >= seeding.still_shift or turn >= seeding.still_turn)
         reach = tracking.reach * float(distances.max())
         result.objects.append(MotionObject(k, every, track, reach, shift, moved))
         covered |= track.footprints

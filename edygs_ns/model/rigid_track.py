@@ -86,7 +86,8 @@ class RigidTrack:
     """Per-latent rigid transforms of the seeds: rotation vectors [N, 3] (radians), translations
     [N, 3] (world units), about the centre [3]; ``loss`` [N] is the final fit loss (mean absolute
     colour error near the motion evidence, plus the weighted silhouette error); ``footprints``
-    [N, H, W] bool the pixels near the tracked seeds in every latent; ``iou`` [N] the intersection
+    [N, H, W] bool the pixels near the tracked seeds in every latent (within the follow margin:
+    evidence there is this object's); ``iou`` [N] the intersection
     over union of the tracked seeds' silhouette with the object's evidence (NaN where the latent has
     none)."""
 
@@ -249,7 +250,7 @@ def track_rigid(
         for i in range(n):
             losses[i] = render_loss(i, rotvecs[i], units[i], latent(i)) if bool(regions[i].any()) else 0.0
             shape = silhouette(i, rotvecs[i], units[i], turn=False) > 0.5
-            footprints[i] = grow(shape, dilation)
+            footprints[i] = grow(shape, follow)
             own = outlines[i] > 0.5
             if bool(own.any()):
                 iou[i] = (shape & own).sum() / (shape | own).sum()
