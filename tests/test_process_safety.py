@@ -123,6 +123,11 @@ def test_motion_check_sees_a_moving_camera_and_skips_featureless_frames(tmp_path
     for p in flat:
         cv2.imwrite(str(p), np.full((48, 64), 128, np.uint8))
     assert motion_check.check_camera_moves(flat, 2.0) is None
+    rng = np.random.default_rng(0)
+    noise = [tmp_path / f"noise{i}.png" for i in range(3)]
+    for p in noise:  # unrelated frames (e.g. EDI latents of featureless frames): never "static"
+        cv2.imwrite(str(p), rng.integers(0, 256, (48, 64)).astype(np.uint8))
+    assert motion_check.check_camera_moves(noise, 2.0) == float("inf")
 
 
 def test_first_frame_before_the_events_is_dropped_and_reported(tmp_path: Path) -> None:

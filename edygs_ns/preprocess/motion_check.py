@@ -3,9 +3,11 @@
 Structure from motion needs parallax: a camera that stays put (a DAVIS on a tripod watching
 traffic) registers no image, which COLMAP only says after a long run. Here corners found in the
 first frame are tracked (pyramidal Lucas-Kanade, checked forwards and backwards) into a few
-frames spread over the clip; the median displacement of the tracked corners ignores the moving
-objects as long as most of the picture is background. When that median stays below
-``min_motion_px`` in every sampled frame, the camera is static.
+frames spread over the clip; a track counts only when the patches around both ends look alike
+(normalised cross-correlation), so frames of unrelated noise never pass for a still picture. The
+median displacement of the tracked corners ignores the moving objects as long as most of the
+picture is background. When that median stays below ``min_motion_px`` in every sampled frame,
+the camera is static.
 """
 
 from __future__ import annotations
@@ -31,6 +33,9 @@ LK_LEVELS = 3
 FORWARD_BACKWARD_PX = 1.0
 #: Below this fraction of tracked corners a frame has moved too far to track: the camera moves.
 MIN_TRACKED_FRACTION = 0.3
+#: Half size (px) of the patches compared at both ends of a track, and their least correlation.
+PATCH_RADIUS_PX = 5
+MIN_PATCH_NCC = 0.7
 
 
 class StaticCameraError(ValueError):
@@ -42,6 +47,22 @@ def _grey(path: Path) -> np.ndarray:
     if image is None:
         raise ValueError(f"{path}: cannot decode the image (truncated or not an image file)")
     return image
+
+
+def _patches_match(ref: np.ndarray, frame: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """[C] bool: the patches around start (in ref) and end (in frame) correlate (NCC >= MIN_PATCH_NCC)."""
+    r = PATCH_RADIUS_PX
+    h, w = ref.shape
+    ok = np.zeros(len(start), dtype=bool)
+    for i, ((x0, y0), (x1, y1)) in enumerate(np.round(np.stack([start, end], axis=1)).astype(int)):
+        if min(x0, y0, x1, y1) < r or max(x0, x1) >= w - r or max(y0, y1) >= h - r:
+            continue
+        a = ref[y0 - r: y0 + r + 1, x0 - r: x0 + r + 1].astype(np.float64).ravel()
+        b = frame[y1 - r: y1 + r + 1, x1 - r: x1 + r + 1].astype(np.float64).ravel()
+        a, b = a - a.mean(), b - b.mean()
+        norm = np.sqrt((a @ a) * (b @ b))
+        ok[i] = norm > 0 and (a @ b) / norm >= MIN_PATCH_NCC
+    return ok
 
 
 def median_displacements(frames: Sequence[np.ndarray]) -> Optional[List[float]]:
@@ -64,6 +85,7 @@ def median_displacements(frames: Sequence[np.ndarray]) -> Optional[List[float]]:
         back, status_back, _ = cv2.calcOpticalFlowPyrLK(frame, ref, moved, None, **params)
         good = (status.reshape(-1) == 1) & (status_back.reshape(-1) == 1)
         good &= np.linalg.norm((back - corners).reshape(-1, 2), axis=1) < FORWARD_BACKWARD_PX
+        good &= _patches_match(ref, frame, corners.reshape(-1, 2), moved.reshape(-1, 2))
         if good.sum() < MIN_TRACKED_FRACTION * len(corners):
             out.append(float("inf"))
             continue
