@@ -187,11 +187,11 @@ def initialise_motion(
         moved = consistent and (shift >= seeding.still_shift or turn >= seeding.still_turn)
         reach = tracking.reach * float(distances.max())
         result.objects.append(MotionObject(k, every, track, reach, shift, moved))
-        covered |= track.footprints
+        covered |= track.claims
         covered[k] |= region
     movers = result.movers
     if movers:
-        near = torch.stack([o.track.footprints for o in movers]).any(dim=0)
+        near = torch.stack([o.track.claims for o in movers]).any(dim=0)
         result.consistency = evidence * near
     else:
         result.consistency = torch.zeros_like(evidence)

@@ -86,8 +86,8 @@ class RigidTrack:
     """Per-latent rigid transforms of the seeds: rotation vectors [N, 3] (radians), translations
     [N, 3] (world units), about the centre [3]; ``loss`` [N] is the final fit loss (mean absolute
     colour error near the motion evidence, plus the weighted silhouette error); ``footprints``
-    [N, H, W] bool the pixels near the tracked seeds in every latent (within the follow margin:
-    evidence there is this object's); ``iou`` [N] the intersection
+    [N, H, W] bool the pixels near the tracked seeds in every latent, ``claims`` the wider zone
+    within the follow margin (evidence there is this object's, not another's); ``iou`` [N] the intersection
     over union of the tracked seeds' silhouette with the object's evidence (NaN where the latent has
     none)."""
 
@@ -96,6 +96,7 @@ class RigidTrack:
     translations: Tensor
     loss: Tensor
     footprints: Optional[Tensor] = None
+    claims: Optional[Tensor] = None
     iou: Optional[Tensor] = None
 
     def rotations(self) -> Float[Tensor, "N 3 3"]:
@@ -245,16 +246,18 @@ def track_rigid(
                 optimizer.step()
             rotvecs[i], units[i] = rotvec.detach(), unit.detach()
     footprints = torch.zeros_like(regions)
+    claims = torch.zeros_like(regions)
     iou = torch.full((n,), float("nan"), device=device)
     with torch.no_grad():
         for i in range(n):
             losses[i] = render_loss(i, rotvecs[i], units[i], latent(i)) if bool(regions[i].any()) else 0.0
             shape = silhouette(i, rotvecs[i], units[i], turn=False) > 0.5
-            footprints[i] = grow(shape, follow)
+            footprints[i] = grow(shape, dilation)
+            claims[i] = grow(shape, follow)
             own = outlines[i] > 0.5
             if bool(own.any()):
                 iou[i] = (shape & own).sum() / (shape | own).sum()
-    return RigidTrack(centre=centre, rotvecs=rotvecs, translations=units * size, loss=losses, footprints=footprints, iou=iou)
+    return RigidTrack(centre=centre, rotvecs=rotvecs, translations=units * size, loss=losses, footprints=footprints, claims=claims, iou=iou)
 
 
 def coverage_seeds(
