@@ -15,7 +15,7 @@ from PIL import Image
 
 from edygs_ns.events.exposures import read_exposures
 from edygs_ns.scripts.synth import SynthConfig, SynthWorld, build_world, entrypoint, write_synthetic_scene
-from edygs_ns.sim.scene import ObjectState, render, to_grey
+from edygs_ns.sim.scene import render, to_grey
 from edygs_ns.sim.simulator import SimulatorConfig
 from edygs_ns.sim.trajectory import look_at
 
@@ -73,10 +73,12 @@ def test_layout_files(capture: Path) -> None:
     assert (meta["w"], meta["h"], meta["camera_model"], meta["k"]) == (WIDTH, HEIGHT, "PINHOLE", K)
     assert len(meta["frames"]) == N_FRAMES * K
     assert len(meta["novel_frames"]) == len(range(0, N_FRAMES, 2))
-    keys = {"file_path", "mask_path", "transform_matrix", "time", "time_us", "blurry_index", "latent_index"}
+    keys = {"file_path", "mask_path", "instance_path", "transform_matrix", "time", "time_us", "blurry_index",
+            "latent_index"}
     for record in meta["frames"] + meta["novel_frames"]:
         assert set(record) >= keys
-        assert (capture / "gt" / record["file_path"]).is_file() and (capture / "gt" / record["mask_path"]).is_file()
+        for key in ("file_path", "mask_path", "instance_path"):
+            assert (capture / "gt" / record[key]).is_file()
     assert meta["frames"][2]["file_path"] == "sharp/0000_2.png"
     assert meta["novel_frames"][0]["file_path"].startswith("novel/")
     scene = json.loads((capture / "scene.json").read_text())
@@ -118,10 +120,10 @@ def test_mask_marks_moving_object(capture: Path, world: SynthWorld) -> None:
     # Removing the object changes the image inside its mask and nowhere else (bar edge pixels).
     f = next(f for f, m in zip(frames, masks) if m.mean() > 0.01)
     t = f["time_us"]
-    rgb, mask = world.render(t)
-    away = ObjectState(np.array([0.0, 0.0, 1e3]), np.eye(3))
-    empty, empty_mask = render(world.scene, world.camera, world.c2w(t), away, world.supersample)
-    assert not empty_mask.any()
+    rgb, instance = world.render(t)
+    mask = instance > 0
+    empty, empty_instance = render(world.scene, world.camera, world.c2w(t), (), world.supersample)
+    assert not empty_instance.any()
     changed = np.abs(rgb - empty).max(axis=-1) > 1e-6
     assert np.array_equal(mask, load_png(capture / "gt" / f["mask_path"]) > 0.5)
     assert changed[mask].all()
@@ -221,11 +223,11 @@ def test_same_seed_same_events_other_seed_different(capture: Path, tmp_path: Pat
 def test_other_motions_move_the_object(tmp_path: Path, motion: str) -> None:
     world = build_world(tiny_config(tmp_path, motion=motion))
     times = world.timeline.latents[:, 0]
-    centres = np.array([world.motion.state(t / 1e6).centre for t in times])
+    centres = np.array([world.objects[0].state(t / 1e6).centre for t in times])
     assert np.linalg.norm(np.diff(centres, axis=0), axis=1).min() > 0.01
     room_lo, room_hi = world.scene.room_min, world.scene.room_max
     assert np.all(centres > room_lo) and np.all(centres < room_hi)
-    masks = [world.render(int(t))[1] for t in times]
+    masks = [world.render(int(t))[1] > 0 for t in times]
     assert sum(m.any() for m in masks) >= len(masks) - 1
 
 

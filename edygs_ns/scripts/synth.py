@@ -1,9 +1,10 @@
 """`edygs-synth`: write the built-in synthetic dynamic scene as a raw capture (docs/layouts.md).
 
-A moving camera films a textured room with a moving textured sphere. Each blurry frame is the
-mean of sharp sub-frame renders over its exposure; the event stream comes from the event
-simulator fed with the grey intensity of sharp renders at a fine time step over the whole clip.
-Ground truth (sharp latents, dynamic-object masks, true poses, novel views) goes under gt/.
+A moving camera films a textured room with the moving objects of a scene preset (one textured
+sphere by default; edygs_ns.sim.presets lists the suite). Each blurry frame is the mean of sharp
+sub-frame renders over its exposure; the event stream comes from the event simulator fed with the
+grey intensity of sharp renders at a fine time step over the whole clip. Ground truth (sharp
+latents, dynamic-object masks and instance ids, true poses, novel views) goes under gt/.
 """
 
 from __future__ import annotations
@@ -25,18 +26,10 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from edygs_ns.events.exposures import Exposure, write_exposures
 from edygs_ns.events.types import EventArray
 from edygs_ns.events.writers import write_events_h5
+from edygs_ns.sim.presets import MovingObject, PresetContext, ScenePreset, build_objects
 from edygs_ns.sim.scene import PinholeCamera, Scene, build_scene, render, to_grey
 from edygs_ns.sim.simulator import EventSimulator, SimulatorConfig
-from edygs_ns.sim.trajectory import (
-    US_PER_S,
-    CameraPath,
-    MotionKind,
-    ObjectMotion,
-    Timeline,
-    make_camera_path,
-    make_object_motion,
-    make_timeline,
-)
+from edygs_ns.sim.trajectory import US_PER_S, CameraPath, MotionKind, Timeline, make_camera_path, make_timeline
 
 #: What write_synthetic_scene writes into its folder (and removes first when overwriting).
 OUTPUT_ENTRIES = ("exposures.csv", "frames", "events.h5", "gt", "scene.json", "camera.json")
@@ -44,6 +37,9 @@ OUTPUT_ENTRIES = ("exposures.csv", "frames", "events.h5", "gt", "scene.json", "c
 PNG_MAX = 255
 #: Sub-seeds drawn from the config seed, one per random component.
 SEED_STREAMS = ("scene", "camera", "object")
+#: Ground-truth image folders under gt/: latent (training-path) views and novel views.
+LATENT_DIRS = {"image": "sharp", "mask": "mask", "instance": "instance"}
+NOVEL_DIRS = {"image": "novel", "mask": "novel_mask", "instance": "novel_instance"}
 
 
 @dataclass
@@ -77,13 +73,16 @@ class SynthConfig:
     refractory_us: int = 0
     """Event refractory period per pixel, µs (0: none)."""
     seed: int = 0
-    """Seed of textures, box placement, camera start, object path and the simulator's thresholds."""
+    """Seed of textures, box placement, camera start, object paths and the simulator's thresholds."""
+    preset: ScenePreset = "rigid"
+    """Moving objects: rigid (one sphere, see --motion), two-objects, three-objects, articulated,
+    deforming, enter-leave, large (covers ~1/3 of the image) or static (none)."""
     motion: MotionKind = "circular"
-    """How the sphere moves: linear (back and forth), circular, or bouncing along the floor."""
+    """rigid preset: how the sphere moves: linear (back and forth), circular, or bouncing along the floor."""
     object_speed: float = 2.0
-    """Speed of the moving sphere, world units per second (the room is 4 units wide)."""
+    """rigid preset: speed of the sphere, world units per second (the room is 4 units wide)."""
     object_radius: float = 0.35
-    """Radius of the moving sphere, world units."""
+    """rigid preset: radius of the sphere, world units."""
     camera_speed: float = 2.5
     """Speed of the camera centre along its elliptic sweep, world units per second."""
     camera_sway: float = 0.6
@@ -126,10 +125,10 @@ class SynthWorld:
     """Everything needed to render the clip at any instant.
 
     Attributes:
-        scene: geometry and textures.
+        scene: the static geometry and its textures.
         camera: intrinsics.
         camera_path: camera pose over time.
-        motion: moving-object pose over time.
+        objects: the moving objects (instance id of objects[i] is i + 1).
         timeline: exposures, latents, sub-frames and simulator instants (µs).
         supersample: anti-aliasing factor of every render.
     """
@@ -137,7 +136,7 @@ class SynthWorld:
     scene: Scene
     camera: PinholeCamera
     camera_path: CameraPath
-    motion: ObjectMotion
+    objects: Tuple[MovingObject, ...]
     timeline: Timeline
     supersample: int
 
@@ -150,10 +149,12 @@ class SynthWorld:
 
         Returns:
             rgb: [H, W, 3] float32 linear intensity in [0, 1].
-            mask: [H, W] bool dynamic-object mask.
+            instance: [H, W] uint8 instance ids (0 static, i + 1 for objects[i]); ``instance > 0``
+                is the dynamic-object mask.
         """
         pose = self.c2w(t_us) if c2w is None else c2w
-        return render(self.scene, self.camera, pose, self.motion.state(t_us / US_PER_S), self.supersample)
+        posed = [(obj.shape, obj.state(t_us / US_PER_S)) for obj in self.objects]
+        return render(self.scene, self.camera, pose, posed, self.supersample)
 
 
 def build_world(config: SynthConfig) -> SynthWorld:
@@ -163,12 +164,15 @@ def build_world(config: SynthConfig) -> SynthWorld:
                              config.n_subframes, config.sim_steps_per_exposure)
     seeds = np.random.SeedSequence(config.seed).spawn(len(SEED_STREAMS))
     rngs = dict(zip(SEED_STREAMS, (np.random.default_rng(s) for s in seeds)))
-    scene = build_scene(int(rngs["scene"].integers(2**31)), config.object_radius)
+    scene_rng = np.random.default_rng(int(rngs["scene"].integers(2**31)))
+    scene = build_scene(scene_rng)
     camera = PinholeCamera.from_fov(config.width, config.height, config.fov_deg)
     duration_s = timeline.duration_us / US_PER_S
     path = make_camera_path(rngs["camera"], config.camera_sway, config.camera_speed, config.camera_dolly, duration_s)
-    motion = make_object_motion(rngs["object"], config.motion, config.object_speed, config.object_radius)
-    return SynthWorld(scene, camera, path, motion, timeline, config.supersample)
+    context = PresetContext(path, camera, duration_s, config.motion, config.object_speed, config.object_radius,
+                            scene.boxes)
+    objects = build_objects(config.preset, scene_rng, rngs["object"], context)  # textures continue the room's stream
+    return SynthWorld(scene, camera, path, objects, timeline, config.supersample)
 
 
 def _prepare_output(folder: Path, overwrite: bool) -> None:
@@ -184,7 +188,7 @@ def _prepare_output(folder: Path, overwrite: bool) -> None:
                 shutil.rmtree(entry)
             elif entry.exists():
                 entry.unlink()
-    for sub in ("frames", "gt/sharp", "gt/mask", "gt/novel", "gt/novel_mask"):
+    for sub in ["frames"] + [f"gt/{d}" for dirs in (LATENT_DIRS, NOVEL_DIRS) for d in dirs.values()]:
         (folder / sub).mkdir(parents=True, exist_ok=True)
 
 
@@ -198,11 +202,20 @@ def _save_mask(path: Path, mask: np.ndarray) -> None:
     Image.fromarray(mask.astype(np.uint8) * PNG_MAX).save(path)
 
 
-def _gt_entry(world: SynthWorld, sub: str, name: str, pose: np.ndarray, t_us: int, p: int, j: int) -> Dict[str, Any]:
+def _save_gt(folder: Path, dirs: Dict[str, str], name: str, rgb: np.ndarray, instance: np.ndarray) -> None:
+    """Write one ground-truth view: image, mask (instance > 0) and 8-bit instance ids."""
+    _save_rgb(folder / "gt" / dirs["image"] / name, rgb)
+    _save_mask(folder / "gt" / dirs["mask"] / name, instance > 0)
+    Image.fromarray(instance).save(folder / "gt" / dirs["instance"] / name)
+
+
+def _gt_entry(world: SynthWorld, dirs: Dict[str, str], name: str, pose: np.ndarray, t_us: int, p: int,
+              j: int) -> Dict[str, Any]:
     """One ground-truth frame record of gt/transforms.json."""
     return {
-        "file_path": f"{sub}/{name}",
-        "mask_path": f"{'mask' if sub == 'sharp' else 'novel_mask'}/{name}",
+        "file_path": f"{dirs['image']}/{name}",
+        "mask_path": f"{dirs['mask']}/{name}",
+        "instance_path": f"{dirs['instance']}/{name}",
         "transform_matrix": pose.tolist(),
         "time": float(world.timeline.normalised_time(t_us)),
         "time_us": int(t_us),
@@ -247,7 +260,7 @@ def _simulate_clip(world: SynthWorld, config: SynthConfig, folder: Path) -> Tupl
     with _progress() as progress:
         task = progress.add_task("frame 0", total=len(tl.sim_times), events=0)
         for t in (int(v) for v in tl.sim_times):
-            rgb, mask = world.render(t)
+            rgb, instance = world.render(t)
             events = sim.feed(to_grey(rgb), t)
             parts.append(events)
             n_events += len(events)
@@ -258,9 +271,8 @@ def _simulate_clip(world: SynthWorld, config: SynthConfig, folder: Path) -> Tupl
                     _save_rgb(folder / "frames" / f"{p:04d}.png", sums.pop(p) / config.n_subframes)
             for p, j in latent_of.get(t, ()):
                 name = f"{p:04d}_{j}.png"
-                _save_rgb(folder / "gt" / "sharp" / name, rgb)
-                _save_mask(folder / "gt" / "mask" / name, mask)
-                records.append(_gt_entry(world, "sharp", name, world.c2w(t), t, p, j))
+                _save_gt(folder, LATENT_DIRS, name, rgb, instance)
+                records.append(_gt_entry(world, LATENT_DIRS, name, world.c2w(t), t, p, j))
             frame = int(np.searchsorted(tl.exposure_start, t, side="right")) - 1
             progress.update(task, advance=1, events=n_events, description=f"frame {max(frame, 0) + 1}/{config.n_frames}")
     events = EventArray(
@@ -280,11 +292,10 @@ def _render_novel(world: SynthWorld, config: SynthConfig, folder: Path) -> List[
     for p in range(0, config.n_frames, config.novel_stride):
         t = int(world.timeline.latents[p, j])
         pose = world.camera_path.novel_c2w(t / US_PER_S, config.novel_offset)
-        rgb, mask = world.render(t, pose)
+        rgb, instance = world.render(t, pose)
         name = f"{p:04d}_{j}.png"
-        _save_rgb(folder / "gt" / "novel" / name, rgb)
-        _save_mask(folder / "gt" / "novel_mask" / name, mask)
-        records.append(_gt_entry(world, "novel", name, pose, t, p, j))
+        _save_gt(folder, NOVEL_DIRS, name, rgb, instance)
+        records.append(_gt_entry(world, NOVEL_DIRS, name, pose, t, p, j))
     return records
 
 
@@ -303,8 +314,10 @@ def write_synthetic_scene(config: SynthConfig) -> Path:
 
     Writes exposures.csv, frames/NNNN.png (8-bit, linear values quantised directly), events.h5,
     camera.json (the camera's calibration, as a real capture's would be: w, h, fl_x, fl_y, cx, cy),
-    gt/ (transforms.json with the latent and novel frames, sharp/, mask/, novel/, novel_mask/)
-    and scene.json (the config, event count and scene extent for ATE normalisation).
+    gt/ (transforms.json with the latent and novel frames; sharp/, mask/ (union of all moving
+    objects), instance/ (8-bit ids: 0 static, i + 1 for moving object i) and the same for the
+    novel views: novel/, novel_mask/, novel_instance/) and scene.json (the config, the preset and
+    its objects, the event count and the scene extent for ATE normalisation).
 
     Args:
         config: what to write.
@@ -336,6 +349,8 @@ def write_synthetic_scene(config: SynthConfig) -> Path:
     (folder / "gt" / "transforms.json").write_text(json.dumps(transforms, indent=2))
     summary = {
         "config": _config_json(config),
+        "preset": config.preset,
+        "objects": [{"id": i + 1, **obj.describe()} for i, obj in enumerate(world.objects)],
         "n_blurry_frames": config.n_frames,
         "n_events": len(events),
         "duration_us": tl.duration_us,

@@ -1,9 +1,9 @@
 """The built-in synthetic 3D scene and a vectorised numpy ray caster for it.
 
 The scene is a textured room (back wall, floor, ceiling, two side walls) holding a few static
-textured boxes at different depths, plus one moving textured sphere (the dynamic region).
-Every texture is procedural and deterministic from a seed: blobs, discs, coloured patches,
-a faint checker and text-like strokes, dense enough for SIFT to register every view.
+textured boxes at different depths; ``render`` ray-casts it together with any number of posed
+moving shapes (edygs_ns.sim.shapes; which ones, and how they move, is a preset's business:
+edygs_ns.sim.presets). Textures come from edygs_ns.sim.appearance, deterministic from a seed.
 
 Conventions: world units are arbitrary ("units"), y is up; the room is open behind the camera
 (+z side). Cameras use the OpenGL convention of docs/layouts.md (x right, y up, looking down
@@ -14,48 +14,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
-from typing import Any, List, Optional, Sequence, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
-#: Texels per world unit of the procedural textures (sets how fine their detail is).
-TEXELS_PER_UNIT = 64
-#: Smallest and largest texture side in texels.
-TEXTURE_MIN_TEXELS = 32
-TEXTURE_MAX_TEXELS = 1024
-#: Texture values are clipped into this linear range, so log intensity stays finite and lively.
-TEXTURE_MIN_VALUE = 0.06
-TEXTURE_MAX_VALUE = 0.94
-#: Features stamped per square world unit of texture.
-BLOBS_PER_UNIT2 = 4.0
-DISCS_PER_UNIT2 = 3.0
-PATCHES_PER_UNIT2 = 2.5
-MARKS_PER_UNIT2 = 8.0
-#: Size ranges of the stamped features, world units (blob sigma, disc radius, patch side, stroke).
-BLOB_SIGMA_RANGE = (0.04, 0.2)
-DISC_RADIUS_RANGE = (0.03, 0.12)
-PATCH_SIDE_RANGE = (0.08, 0.4)
-MARK_LENGTH_RANGE = (0.08, 0.3)
-MARK_THICKNESS_RANGE = (0.02, 0.05)
-#: Checker cell side range (world units) and how strongly the checker modulates the base.
-CHECKER_CELL_RANGE = (0.1, 0.3)
-CHECKER_STRENGTH = 0.08
-#: Standard deviation of the per-texel noise added last.
-TEXEL_NOISE_SIGMA = 0.02
-#: Range of the base (background) colour of a surface texture.
-BASE_COLOR_RANGE = (0.25, 0.7)
-#: Saturation of the stamped feature colours of the room (1 = fully random RGB, 0 = grey).
-ROOM_SATURATION = 0.45
-#: Lambert shading: value = albedo * (AMBIENT + DIFFUSE * cos), cos = max(n . l, 0) on the
-#: sphere and |n . l| on the (two-sided) quads.
-AMBIENT = 0.45
-DIFFUSE = 0.55
-#: Direction towards the light (normalised at use).
-LIGHT_DIRECTION = (0.35, 0.8, 0.5)
+from edygs_ns.sim.appearance import TextureAtlas, lambert, procedural_texture
+from edygs_ns.sim.shapes import RAY_T_MIN, ObjectState, Shape
+
 #: Radiance of rays that hit nothing (the open side of the room).
 BACKGROUND_VALUE = 0.05
-#: Rays hitting closer than this are ignored (avoids self-hits at t = 0).
-RAY_T_MIN = 1e-6
 #: Rays more parallel than this to a plane do not hit it.
 PARALLEL_EPS = 1e-9
 #: Grey weights (ITU-R BT.601) turning linear RGB into the event camera's intensity.
@@ -74,12 +41,8 @@ BOX_LAYOUT = (
 BOX_JITTER = 0.12
 #: Largest yaw (radians) the seed gives a box about the vertical axis.
 BOX_MAX_YAW = 0.5
-#: Base colour range of the moving sphere (saturated, so it stands out from the room).
-SPHERE_BASE_RANGE = (0.1, 0.9)
-#: Saturation of the sphere's feature colours.
-SPHERE_SATURATION = 1.0
-#: Feature density multiplier on the sphere texture (it is small; make it busy).
-SPHERE_DETAIL_SCALE = 3.0
+#: Largest number of moving objects one render can tell apart (8-bit instance ids, 0 = static).
+MAX_OBJECTS = 255
 
 
 @dataclass(frozen=True)
@@ -108,30 +71,6 @@ class Quad:
         return n / np.linalg.norm(n)
 
 
-@dataclass(frozen=True)
-class Sphere:
-    """The moving object's shape and appearance; its pose is an ObjectState.
-
-    Attributes:
-        radius: world units.
-        texture: [Tv, Tu, 3] float32 linear albedo, equirectangular (columns = longitude).
-    """
-
-    radius: float
-    texture: np.ndarray
-
-
-@dataclass(frozen=True)
-class ObjectState:
-    """Pose of the moving sphere at one instant.
-
-    Attributes:
-        centre: [3] world position of the sphere centre.
-        rotation: [3, 3] object-to-world rotation (spins the texture).
-    """
-
-    centre: np.ndarray
-    rotation: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -177,20 +116,40 @@ class QuadStack:
 
 
 @dataclass(frozen=True)
+class StaticBox:
+    """The solid of one static box (its faces are quads), for keeping moving objects out of it.
+
+    Attributes:
+        centre: [3] world centre.
+        rotation: [3, 3] box-to-world rotation.
+        half_size: [3] half extents along the box's axes.
+    """
+
+    centre: np.ndarray
+    rotation: np.ndarray
+    half_size: np.ndarray
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """[M] Euclidean distance of [M, 3] points to the solid box (0 inside)."""
+        local = (np.asarray(points, float) - self.centre) @ self.rotation
+        return np.linalg.norm(np.maximum(np.abs(local) - self.half_size, 0.0), axis=-1)
+
+
+@dataclass(frozen=True)
 class Scene:
-    """Static geometry plus the (pose-less) moving sphere.
+    """The static geometry: the room and its boxes.
 
     Attributes:
         quads: static textured rectangles (room and boxes).
-        sphere: the moving object.
         room_min: [3] lower corner of the room box.
         room_max: [3] upper corner of the room box.
+        boxes: the static boxes as solids (their faces are among ``quads``).
     """
 
     quads: Tuple[Quad, ...]
-    sphere: Sphere
     room_min: np.ndarray
     room_max: np.ndarray
+    boxes: Tuple[StaticBox, ...] = ()
 
     @cached_property
     def quad_stack(self) -> QuadStack:
@@ -205,7 +164,7 @@ class Scene:
     @cached_property
     def quad_shading(self) -> np.ndarray:
         """[Q] float32 Lambert factor of each static quad (seen from either side)."""
-        return _shade(self.quad_stack.normals, two_sided=True).astype(np.float32)
+        return lambert(self.quad_stack.normals, two_sided=True).astype(np.float32)
 
     @property
     def room_diameter(self) -> float:
@@ -271,172 +230,6 @@ def _camera_space_directions(camera: PinholeCamera, supersample: int) -> np.ndar
     return d_cam
 
 
-# ----------------------------------------------------------------------------------------------
-# Procedural textures
-# ----------------------------------------------------------------------------------------------
-
-
-def _stamp(img: np.ndarray, r0: int, r1: int, c0: int, c1: int, alpha: np.ndarray, color: np.ndarray) -> None:
-    """Alpha-blend ``color`` into ``img[r0:r1, c0:c1]`` with weights ``alpha`` [r1-r0, c1-c0]."""
-    window = img[r0:r1, c0:c1]
-    window += alpha[..., None] * (color - window)
-
-
-def procedural_texture(rng: np.random.Generator, size_u: float, size_v: float,
-                       base_range: Tuple[float, float] = BASE_COLOR_RANGE, detail: float = 1.0,
-                       saturation: float = ROOM_SATURATION) -> np.ndarray:
-    """A non-repetitive texture for a surface of size_u x size_v world units.
-
-    Layers (in order): base colour, faint checker, soft Gaussian blobs, hard discs, coloured
-    rectangular patches, thin text-like strokes, per-texel noise.
-
-    Args:
-        rng: source of all randomness (deterministic textures from a seeded generator).
-        size_u: surface extent along the texture columns, world units.
-        size_v: surface extent along the texture rows, world units.
-        base_range: range of the base colour channels.
-        detail: multiplier on the feature densities.
-        saturation: how far feature colours stray from grey (0 grey, 1 fully random RGB).
-
-    Returns:
-        [Tv, Tu, 3] float32 linear albedo in [TEXTURE_MIN_VALUE, TEXTURE_MAX_VALUE].
-    """
-    tu = int(np.clip(round(size_u * TEXELS_PER_UNIT), TEXTURE_MIN_TEXELS, TEXTURE_MAX_TEXELS))
-    tv = int(np.clip(round(size_v * TEXELS_PER_UNIT), TEXTURE_MIN_TEXELS, TEXTURE_MAX_TEXELS))
-    texels_per_unit = tu / size_u
-    area = size_u * size_v
-    img = np.empty((tv, tu, 3), dtype=np.float64)
-    img[:] = rng.uniform(*base_range, size=3)
-
-    cell = rng.uniform(*CHECKER_CELL_RANGE) * texels_per_unit
-    rows, cols = np.mgrid[0:tv, 0:tu]
-    checker = ((rows // cell + cols // cell) % 2) * 2.0 - 1.0
-    img *= (1.0 + CHECKER_STRENGTH * checker)[..., None]
-
-    def n_features(density: float) -> int:
-        return max(1, int(round(density * detail * area)))
-
-    def color() -> np.ndarray:
-        rgb = rng.uniform(0.0, 1.0, size=3)
-        return rgb.mean() + saturation * (rgb - rgb.mean())
-
-    for _ in range(n_features(BLOBS_PER_UNIT2)):
-        sigma = rng.uniform(*BLOB_SIGMA_RANGE) * texels_per_unit
-        cy, cx = rng.uniform(0, tv), rng.uniform(0, tu)
-        reach = 3.0 * sigma
-        r0, r1 = int(max(cy - reach, 0)), int(min(cy + reach + 1, tv))
-        c0, c1 = int(max(cx - reach, 0)), int(min(cx + reach + 1, tu))
-        if r1 <= r0 or c1 <= c0:
-            continue
-        yy, xx = np.mgrid[r0:r1, c0:c1]
-        alpha = np.exp(-((yy - cy) ** 2 + (xx - cx) ** 2) / (2.0 * sigma**2))
-        _stamp(img, r0, r1, c0, c1, alpha, color())
-
-    for _ in range(n_features(DISCS_PER_UNIT2)):
-        radius = rng.uniform(*DISC_RADIUS_RANGE) * texels_per_unit
-        cy, cx = rng.uniform(0, tv), rng.uniform(0, tu)
-        r0, r1 = int(max(cy - radius, 0)), int(min(cy + radius + 1, tv))
-        c0, c1 = int(max(cx - radius, 0)), int(min(cx + radius + 1, tu))
-        if r1 <= r0 or c1 <= c0:
-            continue
-        yy, xx = np.mgrid[r0:r1, c0:c1]
-        alpha = (((yy - cy) ** 2 + (xx - cx) ** 2) <= radius**2).astype(np.float64)
-        _stamp(img, r0, r1, c0, c1, alpha, color())
-
-    for _ in range(n_features(PATCHES_PER_UNIT2)):
-        h, w = rng.uniform(*PATCH_SIDE_RANGE, size=2) * texels_per_unit
-        r0, c0 = int(rng.uniform(0, tv)), int(rng.uniform(0, tu))
-        r1, c1 = min(r0 + max(int(h), 1), tv), min(c0 + max(int(w), 1), tu)
-        _stamp(img, r0, r1, c0, c1, np.ones((r1 - r0, c1 - c0)), color())
-
-    for _ in range(n_features(MARKS_PER_UNIT2)):
-        length = rng.uniform(*MARK_LENGTH_RANGE) * texels_per_unit
-        thick = rng.uniform(*MARK_THICKNESS_RANGE) * texels_per_unit
-        h, w = (length, thick) if rng.uniform() < 0.5 else (thick, length)
-        r0, c0 = int(rng.uniform(0, tv)), int(rng.uniform(0, tu))
-        r1, c1 = min(r0 + max(int(h), 1), tv), min(c0 + max(int(w), 1), tu)
-        ink = rng.choice([TEXTURE_MIN_VALUE, TEXTURE_MAX_VALUE])
-        _stamp(img, r0, r1, c0, c1, np.ones((r1 - r0, c1 - c0)), np.full(3, ink))
-
-    img += rng.normal(0.0, TEXEL_NOISE_SIGMA, size=img.shape)
-    return np.clip(img, TEXTURE_MIN_VALUE, TEXTURE_MAX_VALUE).astype(np.float32)
-
-
-def _bilinear(flat: np.ndarray, offset: Any, tu: Any, tv: Any, a: np.ndarray, b: np.ndarray,
-              wrap_u: bool) -> np.ndarray:
-    """Bilinear lookup in row-major textures stored back to back in ``flat`` [sum Tv*Tu, 3].
-
-    ``offset`` (first texel), ``tu`` and ``tv`` (texture sizes) are scalars or [N] arrays, one
-    per sample; a, b are [N] coordinates in [0, 1] along columns and rows.
-    """
-    half = np.float32(0.5)
-    x = np.asarray(a, dtype=np.float32) * np.asarray(tu, dtype=np.float32) - half
-    y = np.asarray(b, dtype=np.float32) * np.asarray(tv, dtype=np.float32) - half
-    x0 = np.floor(x)
-    y0 = np.floor(y)
-    fx = (x - x0)[:, None]  # float32 throughout: mixing in float64 makes the blend ~5x slower
-    fy = (y - y0)[:, None]
-    x0 = x0.astype(np.int64)
-    y0 = y0.astype(np.int64)
-    if wrap_u:
-        xa, xb = x0 % tu, (x0 + 1) % tu
-    else:
-        xa, xb = np.clip(x0, 0, tu - 1), np.clip(x0 + 1, 0, tu - 1)
-    row_a = offset + np.clip(y0, 0, tv - 1) * tu
-    row_b = offset + np.clip(y0 + 1, 0, tv - 1) * tu
-    flat = np.asarray(flat, dtype=np.float32)
-    top = np.take(flat, row_a + xa, axis=0)  # np.take: several times faster than flat[idx]
-    top += fx * (np.take(flat, row_a + xb, axis=0) - top)
-    bottom = np.take(flat, row_b + xa, axis=0)
-    bottom += fx * (np.take(flat, row_b + xb, axis=0) - bottom)
-    top += fy * (bottom - top)
-    return top
-
-
-def sample_bilinear(texture: np.ndarray, a: np.ndarray, b: np.ndarray, wrap_u: bool = False) -> np.ndarray:
-    """Bilinear texture lookup.
-
-    Args:
-        texture: [Tv, Tu, C] texels.
-        a: [N] coordinate along columns in [0, 1] (texel centres at (i + 0.5) / Tu).
-        b: [N] coordinate along rows in [0, 1].
-        wrap_u: wrap around in a (for the sphere's longitude); otherwise clamp at the edges.
-
-    Returns:
-        [N, C] interpolated values.
-    """
-    tv, tu = texture.shape[:2]
-    return _bilinear(texture.reshape(tv * tu, -1), 0, tu, tv, a, b, wrap_u)
-
-
-@dataclass(frozen=True)
-class TextureAtlas:
-    """Q textures of different sizes stored back to back, for one lookup over many quads.
-
-    Attributes:
-        texels: [sum Tv*Tu, 3] float32 texels, each texture row-major.
-        offsets: [Q] int64 index of each texture's first texel.
-        widths: [Q] int64 Tu of each texture.
-        heights: [Q] int64 Tv of each texture.
-    """
-
-    texels: np.ndarray
-    offsets: np.ndarray
-    widths: np.ndarray
-    heights: np.ndarray
-
-    @classmethod
-    def from_textures(cls, textures: Sequence[np.ndarray]) -> "TextureAtlas":
-        """Pack [Tv, Tu, 3] textures."""
-        sizes = np.array([t.shape[0] * t.shape[1] for t in textures], dtype=np.int64)
-        offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        texels = np.concatenate([t.reshape(-1, t.shape[-1]) for t in textures]).astype(np.float32)
-        return cls(texels, offsets, np.array([t.shape[1] for t in textures], dtype=np.int64),
-                   np.array([t.shape[0] for t in textures], dtype=np.int64))
-
-    def sample(self, ids: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """[N, 3] bilinear lookups at coordinates (a, b) in [0, 1] of textures ``ids`` [N]."""
-        return _bilinear(self.texels, self.offsets[ids], self.widths[ids], self.heights[ids], a, b, wrap_u=False)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -464,37 +257,37 @@ def _room_quads(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray) -> Lis
     ]
 
 
-def _box_quads(rng: np.random.Generator, centre: np.ndarray, size: np.ndarray, yaw: float) -> List[Quad]:
-    """Six textured faces of a box rotated by ``yaw`` radians about the vertical axis."""
+def _yawed_box(centre: np.ndarray, size: np.ndarray, yaw: float) -> StaticBox:
+    """A box of full extents ``size`` rotated by ``yaw`` radians about the vertical axis."""
     c, s = np.cos(yaw), np.sin(yaw)
-    rot = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-    ex, ey, ez = (rot @ np.diag(size)).T
-    corner = centre - 0.5 * (ex + ey + ez)
+    return StaticBox(centre, np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]), 0.5 * size)
+
+
+def _box_quads(rng: np.random.Generator, box: StaticBox) -> List[Quad]:
+    """Six textured faces of ``box``."""
+    ex, ey, ez = (box.rotation @ np.diag(2.0 * box.half_size)).T
+    corner = box.centre - 0.5 * (ex + ey + ez)
     faces = ((corner, ex, ey), (corner + ez, ex, ey), (corner, ez, ey), (corner + ex, ez, ey), (corner, ex, ez),
              (corner + ey, ex, ez))
-    return [_textured_quad(rng, origin, eu, ev, centre) for origin, eu, ev in faces]
+    return [_textured_quad(rng, origin, eu, ev, box.centre) for origin, eu, ev in faces]
 
 
-def build_scene(seed: int, object_radius: float) -> Scene:
-    """The built-in room scene; textures and box placement are deterministic from ``seed``.
+def build_scene(rng: np.random.Generator) -> Scene:
+    """The built-in room with its static boxes; textures and box placement come from ``rng``.
 
     Args:
-        seed: random seed.
-        object_radius: radius of the moving sphere, world units.
+        rng: drawn from in a fixed order (room walls, then each box); the caller may keep drawing
+            from it afterwards (the moving objects' textures do).
     """
-    if object_radius <= 0:
-        raise ValueError(f"build_scene: object_radius must be positive, got {object_radius}")
-    rng = np.random.default_rng(seed)
     lo, hi = np.asarray(ROOM_MIN, float), np.asarray(ROOM_MAX, float)
     quads = _room_quads(rng, lo, hi)
+    boxes = []
     for cx, cz, sx, sy, sz in BOX_LAYOUT:
         jitter = rng.uniform(-BOX_JITTER, BOX_JITTER, size=2)
         centre = np.array([cx + jitter[0], lo[1] + 0.5 * sy, cz + jitter[1]])
-        quads += _box_quads(rng, centre, np.array([sx, sy, sz]), rng.uniform(-BOX_MAX_YAW, BOX_MAX_YAW))
-    circumference = 2.0 * np.pi * object_radius
-    sphere_tex = procedural_texture(rng, circumference, 0.5 * circumference, SPHERE_BASE_RANGE, SPHERE_DETAIL_SCALE,
-                                    SPHERE_SATURATION)
-    return Scene(tuple(quads), Sphere(float(object_radius), sphere_tex), lo, hi)
+        boxes.append(_yawed_box(centre, np.array([sx, sy, sz]), rng.uniform(-BOX_MAX_YAW, BOX_MAX_YAW)))
+        quads += _box_quads(rng, boxes[-1])
+    return Scene(tuple(quads), lo, hi, tuple(boxes))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -537,44 +330,27 @@ def _intersect_quads(quads: QuadStack, ids: np.ndarray, origin: np.ndarray,
     return t, a, b
 
 
-def _intersect_sphere(centre: np.ndarray, radius: float, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    """Nearest positive ray distance to the sphere (inf on a miss) for [N, 3] unit rays."""
-    oc = origin - centre
-    half_b = dirs @ oc
-    c = oc @ oc - radius**2
-    disc = half_b**2 - c
-    root = np.sqrt(np.maximum(disc, 0.0))
-    near, far = -half_b - root, -half_b + root
-    t = np.where(near > RAY_T_MIN, near, far)
-    return np.where((disc >= 0.0) & (t > RAY_T_MIN), t, np.inf)
-
-
-def _shade(normals: np.ndarray, two_sided: bool) -> np.ndarray:
-    """[N] Lambert factor AMBIENT + DIFFUSE * cos for [N, 3] unit normals."""
-    light = np.asarray(LIGHT_DIRECTION, float)
-    cos = normals @ (light / np.linalg.norm(light))
-    cos = np.abs(cos) if two_sided else np.maximum(cos, 0.0)
-    return AMBIENT + DIFFUSE * cos
-
-
-def render(scene: Scene, camera: PinholeCamera, c2w: np.ndarray, obj: ObjectState,
+def render(scene: Scene, camera: PinholeCamera, c2w: np.ndarray, objects: Sequence[Tuple[Shape, ObjectState]] = (),
            supersample: int = 2) -> Tuple[np.ndarray, np.ndarray]:
-    """Ray-cast one sharp view.
+    """Ray-cast one sharp view of the room and the posed moving shapes (nearest hit wins).
 
     Args:
-        scene: the geometry.
+        scene: the static geometry.
         camera: intrinsics (output size camera.height x camera.width).
         c2w: [4, 4] camera-to-world, OpenGL convention.
-        obj: pose of the moving sphere at this instant.
+        objects: the moving shapes, each with its pose at this instant.
         supersample: sub-pixel samples per pixel side, averaged (box filter) for anti-aliasing.
 
     Returns:
         rgb: [H, W, 3] float32 linear intensity in [0, 1].
-        mask: [H, W] bool, True where the moving object is the nearest hit on at least half of
-            the pixel's sub-samples.
+        instance: [H, W] uint8, 0 where static; i + 1 where the moving objects together are the
+            nearest hit on at least half of the pixel's sub-samples and objects[i] on the most
+            (the first such object on a tie). ``instance > 0`` is the dynamic-object mask.
     """
     if supersample < 1:
         raise ValueError(f"render: supersample must be >= 1, got {supersample}")
+    if len(objects) > MAX_OBJECTS:
+        raise ValueError(f"render: at most {MAX_OBJECTS} moving objects, got {len(objects)}")
     c2w = np.asarray(c2w, dtype=np.float64)
     if c2w.shape != (4, 4):
         raise ValueError(f"render: c2w has shape {c2w.shape}, expected (4, 4)")
@@ -593,30 +369,37 @@ def render(scene: Scene, camera: PinholeCamera, c2w: np.ndarray, obj: ObjectStat
     best_a = a_all[rows, nearest]
     best_b = b_all[rows, nearest]
     best_id = np.where(np.isfinite(best_t), ids[nearest], -1)
-    sphere_id = len(scene.quads)
-    t_sphere = _intersect_sphere(obj.centre, scene.sphere.radius, origin, dirs)
-    best_id[t_sphere < best_t] = sphere_id
-    best_t = np.minimum(best_t, t_sphere)
+    first_object = len(scene.quads)  # best_id of objects[i] is first_object + i
+    for i, (shape, pose) in enumerate(objects):
+        t_obj = shape.intersect(pose, origin, dirs)
+        best_id[t_obj < best_t] = first_object + i
+        best_t = np.minimum(best_t, t_obj)
 
     color = np.full((n_rays, 3), BACKGROUND_VALUE, dtype=np.float32)
-    on_quad = (best_id >= 0) & (best_id < sphere_id)
+    on_quad = (best_id >= 0) & (best_id < first_object)
     quad_ids = best_id[on_quad]
     albedo = scene.atlas.sample(quad_ids, best_a[on_quad], best_b[on_quad])
     color[on_quad] = albedo * scene.quad_shading[quad_ids][:, None]
-    sel = best_id == sphere_id
-    if np.any(sel):
-        normals = (origin + best_t[sel, None] * dirs[sel] - obj.centre) / scene.sphere.radius
-        local = normals @ np.asarray(obj.rotation, float)  # world -> object: R^T n, as row vectors
-        lon = np.arctan2(local[:, 0], local[:, 2]) / (2.0 * np.pi) + 0.5
-        lat = np.arccos(np.clip(local[:, 1], -1.0, 1.0)) / np.pi
-        albedo = sample_bilinear(scene.sphere.texture, lon, lat, wrap_u=True)
-        color[sel] = albedo * _shade(normals, two_sided=False)[:, None]
+    for i, (shape, pose) in enumerate(objects):
+        sel = best_id == first_object + i
+        if np.any(sel):
+            color[sel] = shape.radiance(pose, origin, dirs[sel], best_t[sel])
 
     s = int(supersample)
     h, w = sh // s, sw // s
     rgb = color.reshape(h, s, w, s, 3).mean(axis=(1, 3))
-    coverage = (best_id == sphere_id).reshape(h, s, w, s).mean(axis=(1, 3))
-    return np.clip(rgb, 0.0, 1.0).astype(np.float32), coverage >= 0.5
+    return np.clip(rgb, 0.0, 1.0).astype(np.float32), _instance_ids(best_id - first_object, len(objects), h, w, s)
+
+
+def _instance_ids(object_index: np.ndarray, n_objects: int, h: int, w: int, s: int) -> np.ndarray:
+    """[h, w] uint8 instance map from the [h*s*w*s] per-sub-sample object index (< 0: static)."""
+    instance = np.zeros((h, w), dtype=np.uint8)
+    if n_objects == 0:
+        return instance
+    coverage = (object_index >= 0).reshape(h, s, w, s).mean(axis=(1, 3))
+    shares = np.stack([(object_index == i).reshape(h, s, w, s).mean(axis=(1, 3)) for i in range(n_objects)])
+    winner = np.argmax(shares, axis=0).astype(np.uint8) + 1
+    return np.where(coverage >= 0.5, winner, instance)
 
 
 def to_grey(rgb: np.ndarray) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Where things are and when: the camera path, the moving object's motion, the exposure timeline.
+"""Where things are and when: the camera path, the rigid preset's sphere motion, the exposure timeline.
 
 Times are microseconds (int64) on the clip's clock; motion functions take seconds (float).
 Poses are camera-to-world 4x4 matrices in the OpenGL convention (x right, y up, looking down -z).
@@ -11,7 +11,8 @@ from typing import Literal, Sequence, Tuple
 
 import numpy as np
 
-from edygs_ns.sim.scene import ROOM_MIN, ObjectState
+from edygs_ns.sim.scene import ROOM_MIN
+from edygs_ns.sim.shapes import ObjectState
 
 MotionKind = Literal["linear", "circular", "bouncing"]
 #: The object motions write_synthetic_scene understands.
