@@ -1,13 +1,12 @@
 """One place that scales the EDyGS schedule to a run length (the CPU demo and benchmarks).
 
 The method's defaults (``configs/method_configs.py``) are for a full-length GPU run. A shorter
-run keeps the same shape: phase lengths, the dynamic-phase time curriculum and the densification
-window are fractions of the run. The learning-rate decays are not scaled: they keep the
-full-length schedules (20k steps), so a short run ends at a higher rate. Scaling them to the run
-was worse on the built-in scene (seed 0, 3000 CPU iterations with densification threshold 4e-4,
-input-view PSNR): 28.31 as is, 27.88 with the means' decay over the run, 27.68 with the camera
-poses' too; at 1500 iterations (threshold 2e-4) also the deformation's: 26.61 against 27.55. ``python -m edygs_ns.configs.run_length ITERS``
-prints the ``ns-train`` arguments (the demo script uses it).
+run has one shape, ``RunShape``: phase lengths, the dynamic-phase time curriculum and the
+densification window are fractions of the run (the phase fractions are not the full-length
+defaults' 5 % / 20 %). The learning-rate decays are not scaled: they keep the full-length
+schedules (20k steps), so a short run ends at a higher rate (scaling them was worse). Both are
+in docs/method.md, "Run shape". ``python -m edygs_ns.configs.run_length ITERS`` prints the
+``ns-train`` arguments (the demo script uses them); ``ns-train edygs-cpu`` is the same run.
 """
 
 from __future__ import annotations
@@ -26,10 +25,8 @@ class RunShape:
     static: float = 0.3
     """static phase"""
     window_ramp: float = 0.15
-    """widening of the dynamic-phase time window (from the dynamic start). Built-in scenes, 3000
-    CPU iterations (a ramp of 450 against 900 steps), input-view PSNR seed 0 / 1 / 2: 30.30 /
-    29.92 / 29.64 against 30.06 / 29.86 / 29.37; the clip's ends get more of the dynamic phase.
-    The full-length default (schedule.dynamic_window_ramp_iters 3000 of 20k) is the same share"""
+    """widening of the dynamic-phase time window, from the dynamic start (the
+    full-length share, 3000 of 20k; docs/method.md)"""
     refine_start: float = 1.0 / 15.0
     """first densification step"""
     refine_stop: float = 0.75

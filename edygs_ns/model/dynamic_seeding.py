@@ -39,19 +39,19 @@ class DynamicSeedingConfig:
     """Motion evidence and dynamic seeds at the start of the dynamic phase."""
 
     enabled: bool = True
-    """derive motion evidence and seed dynamic Gaussians at the static -> dynamic switch (needs the
-    motion mask; off for ablations without it)"""
+    """derive motion evidence and seed dynamic Gaussians at the static ->
+    dynamic switch (needs the motion mask; off for ablations without it)"""
     window_fraction: float = 0.055
-    """box-filter width of the residual as a fraction of the image width (odd, at least 3 px);
-    7 px at 128 px: on the built-in scene 3 px gave evidence IoU 0.54 with the true object mask,
-    7 px 0.70"""
+    """box-filter width of the residual, a fraction of the image width (odd,
+    >= 3 px; 7 px at 128 px; docs/method.md)"""
     threshold_mads: float = 4.5
-    """evidence where the filtered residual exceeds median + this · σ_MAD over all latents
-    (built-in scene: 3 -> IoU 0.59, 4 -> 0.69, 5 -> 0.70, 8 -> 0.49)"""
+    """evidence where the filtered residual exceeds median + this · σ_MAD
+    over all latents (docs/method.md)"""
     min_threshold: float = 0.03
     """the evidence threshold is at least this (mean absolute colour error in [0, 1])"""
     reference_time: float = 0.5
-    """normalised time of the canonical frame the seeds come from (the nearest training latent)"""
+    """normalised time of the reference latent, searched first for objects
+    (and the centre of the dynamic phase's time window)"""
     pixel_stride: int = 1
     """seed every this-many-th evidence pixel in each direction"""
     max_seeds: int = 4000
@@ -59,14 +59,11 @@ class DynamicSeedingConfig:
     depth_scale: float = 0.9
     """seeds sit at this fraction of the static render's depth (in front of the surface behind)"""
     seed_shape: Literal["cap", "flat"] = "cap"
-    """cap: the seeds form a round cap bulging towards the camera by the blob's radius, centred at
-    the blob's median static depth times ``depth_scale`` (a compact object is closer to round than
-    to a card, and a turning card cannot show its far side); flat: every seed at its own pixel's
-    static depth times ``depth_scale``"""
+    """cap: a round cap bulging towards the camera, at the region's median
+    depth × depth_scale; flat: each seed at its pixel's depth × that"""
     coverage_times: Tuple[float, ...] = (0.0, 1.0)
-    """normalised times of extra latents whose evidence pixels, taken back to the canonical frame
-    by the rigid track (model/rigid_track.py), seed the parts of the object the reference latent did
-    not see (empty: none; needs the rigid track)"""
+    """times of latents whose evidence, taken back by an object's rigid
+    track, seeds what its reference latent did not see (empty: none)"""
     coverage_spacing: float = 1.5
     """a coverage seed is kept only if it is farther than this many seed radii from every seed"""
     seed_opacity: float = 0.5
@@ -76,26 +73,25 @@ class DynamicSeedingConfig:
     scale_pixels: float = 0.8
     """seed radius in pixels at its depth (times pixel_stride)"""
     consistency_target: Literal["evidence", "rendered", "max"] = "evidence"
-    """the dynamic phase's mask-consistency target M̂: the motion evidence, the mask rendered by the
-    static model (the paper's wording; on the built-in scene it marks pose-error edges, not the
-    moving object), or their maximum"""
+    """M̂ of the dynamic phase: motion evidence near the movers, the mask
+    the static model renders (the paper), or their maximum"""
     init_motion_steps: int = 300
-    """MLP-only steps regressing the seeds' deformation onto the evidence track (0: off)"""
+    """MLP-only steps regressing the seeds' deformation onto their track,
+    when the track is not the base motion (0: off)"""
     init_motion_lr: float = 1e-3
     """Adam learning rate of the motion initialisation"""
     init_motion_batch: int = 512
     """(seed, time) samples per motion-initialisation step"""
     min_object_fraction: float = 0.002
-    """an evidence region smaller than this fraction of the image is noise, not a moving object
-    (25 px at 128x96); also the least evidence a latent needs for a translation-track point"""
+    """evidence regions below this fraction of the image (25 px at 128x96)
+    are noise; also the least evidence of a translation-track point"""
     max_objects: int = 6
     """at most this many moving objects get seeds and a rigid body (model/motion_init.py)"""
     max_candidates: int = 10
     """at most this many evidence regions are tracked (movers and still flaws of the static model)"""
     still_shift: float = 0.25
-    """a tracked region whose centre moves in the image less than this many of its radii over the
-    clip (relative to where it would be if it stood still), and turns less than ``still_turn``, is
-    not a mover: no seeds"""
+    """a tracked region is a mover only if it shifts this many of its radii
+    in the image over the clip, or turns still_turn"""
     still_turn: float = 0.2
     """radians; see ``still_shift``"""
     min_presence: float = 0.25

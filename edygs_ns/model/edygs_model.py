@@ -69,7 +69,7 @@ class EdygsModelConfig(ModelConfig):
     seeding: DynamicSeedingConfig = field(default_factory=DynamicSeedingConfig)
     """motion evidence and dynamic seeds at the static -> dynamic switch"""
     rigid_track: RigidTrackConfig = field(default_factory=RigidTrackConfig)
-    """photometric rigid tracking of the dynamic seeds (the motion initialisation's target)"""
+    """rigid tracking of each moving object's seeds at the switch (its base motion afterwards)"""
     camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="SO3xR3"))
     """per-latent-frame pose refinement (nerfstudio's camera optimiser)"""
     rasterizer: Literal["auto", "torch", "gsplat"] = "auto"
@@ -85,8 +85,8 @@ class EdygsModelConfig(ModelConfig):
     num_random: int = 5000
     """Gaussians drawn uniformly in the scene box when the data has no points"""
     fallback_time: float = 0.0
-    """normalised time in [0, 1] used where nerfstudio gives none: cameras without times (ns-render
-    interpolate) and ns-export gaussian-splat; $EDYGS_TIME overrides it (splat_export_view.py)"""
+    """normalised time in [0, 1] for cameras without one (ns-render
+    interpolate, ns-export gaussian-splat); $EDYGS_TIME overrides it"""
     background_color: Literal["black", "white"] = "black"
     """background colour of renders (the motion mask's background is 0)"""
     ssim_lambda: float = 0.2
@@ -96,30 +96,19 @@ class EdygsModelConfig(ModelConfig):
     lambda_edi_static: float = 1.0
     """weight of the static term L(Ĉ(1 − M), EDI(1 − M)) (static phase)"""
     edi_centre_weighting: float = 2.0
-    """trust EDI latents near their exposure's middle more: each latent's EDI terms are weighted
-    by 1 / (1 + a (2u − 1)²), u its place in the exposure in [0, 1], normalised to mean 1
-    (losses/photometric.py: latent_confidence); 0 weighs every latent alike (the paper). Built-in
-    scene, seed 0, 1500 CPU iterations (densify.grow_grad2d 2e-4): a = 0 / 2 / 8 gave input-view PSNR
-    27.55 / 27.79 / 27.54"""
+    """a: the EDI latent at place u ∈ [0, 1] of its exposure weighs
+    1 / (1 + a (2u − 1)²), mean 1; 0: all alike (the paper)"""
     lambda_blur: float = 24.0
-    """weight of the blur-formation loss |mean of an exposure's latent renders − its blurry frame|
-    (losses/blur.py; not in the paper): the only per-colour-channel supervision, against EDI's colour
-    distortion. The pair's other latents come from a cache of their last renders. Built-in scene,
-    seed 0, 3000 CPU iterations, densify.grow_grad2d 7e-4 for every weight: 1 / 3 / 6 / 12 / 24 gave
-    input-view PSNR 28.33 / 28.74 / 29.32 / 29.57 / 30.26, growing ever more Gaussians (42k at 12,
-    74k at 24; the blur loss now has its own grow threshold, densify.grow_grad2d_blur). With that
-    threshold scaled with the weight, 48 (2e-3) did not beat 24 (1.4e-3): means over seeds 0-2 of
-    29.39 and 29.43"""
+    """weight of the blur-formation loss |mean of an exposure's latent
+    renders − its blurry frame| (not in the paper; docs/method.md)"""
     lambda_event: float = 0.5
     """weight of the event loss between consecutive latent renders"""
     lambda_mask: float = 0.15
-    """weight of ‖M‖₁ (static phase). M rises where 0.8·|Ĉ − EDI| exceeds this: at 0.02 the mask
-    covered most of the built-in scene after the static phase (median m 0.57), at 0.15 only the
-    inconsistent parts (median m 0.004)"""
+    """weight of ‖M‖₁ in the static phase, the bias towards static (docs/method.md)"""
     lambda_mask_consistency: float = 0.1
-    """weight of ‖M − M̂‖₁ against the static-phase masks (dynamic phase)"""
+    """weight of ‖M − M̂‖₁ in the dynamic phase (M̂: seeding.consistency_target)"""
     lambda_motion: float = 0.1
-    """weight of the motion loss on the static part of the deformation (dynamic phase)"""
+    """weight of the motion loss ‖(1 − m)Δ‖² (dynamic phase)"""
     event_log_eps: float = DEFAULT_LOG_EPS
     """ε in ln(I + ε) of the event loss"""
     use_edi_loss: bool = True
@@ -135,17 +124,13 @@ class EdygsModelConfig(ModelConfig):
     use_deformation: bool = True
     """ablation switch: the deformation field in the dynamic phase"""
     deform_mask_threshold: float = 0.2
-    """evaluate the deformation MLP only on Gaussians with m >= this (0 = every Gaussian). The motion
-    loss pushes (1 − m)Δ to zero, so Gaussians the mask calls static (m below the static prior's
-    neighbourhood, init 0.1) would get a near-zero offset anyway; skipping them keeps the method's
-    behaviour and makes the MLP affordable on CPU (1.4 s -> 0.6 s per step on the built-in scene)"""
+    """deform only Gaussians with m >= this (0: all, as the paper; docs/method.md)"""
     detach_mask_in_motion_loss: bool = True
-    """the motion loss uses m as given by the mask field (no gradient into m), so it cannot be
-    lowered by calling static Gaussians dynamic"""
+    """no gradient from the motion loss into m (it cannot be lowered by
+    calling static Gaussians dynamic)"""
     ablation: Optional[Literal["events-only", "edi-only", "edi-events", "edi-events-pose", "paper", "full", "blurry"]] = None
-    """one-flag preset of the switches above reproducing a row of the paper's Table 2
-    ("paper": EDyGS with the paper's losses only, "full": EDyGS with the blur loss; configs/ablations.py);
-    None keeps the switches as given"""
+    """the switches above as a row of the paper's Table 2 ("paper": its
+    losses only; "full": with the blur loss); None: as given"""
 
     def __post_init__(self) -> None:
         from edygs_ns.configs.ablations import apply_ablation

@@ -40,8 +40,8 @@ class RigidTrackConfig:
     """Photometric rigid tracking of the dynamic seeds (part of the motion initialisation)."""
 
     enabled: bool = True
-    """fit one rigid transform of the seeds per training latent before the motion regression; off:
-    the translation track of the evidence blob alone"""
+    """track each object's seeds as a rigid body through every latent; off:
+    one translation track of all evidence, regressed into the MLP"""
     steps: int = 25
     """Adam steps per latent"""
     lr_rotation: float = 0.02
@@ -49,36 +49,25 @@ class RigidTrackConfig:
     lr_translation: float = 0.02
     """Adam learning rate of the translation τ in units of the seeds' radius"""
     as_base_motion: bool = True
-    """the deformation is the tracked rigid motion (within ``reach`` of the object's centre) plus the
-    MLP's residual, which starts at zero; off: the MLP alone is regressed onto the rigid offsets (a
-    64x4 MLP fits a half-turn of the built-in sphere to only about 10 px in 300 steps)"""
+    """the tracks are the deformation's trained base motion under the MLP's
+    residual; off: the MLP is regressed onto them (docs/method.md)"""
     reach: float = 1.25
-    """the rigid motion moves deformed Gaussians within this many times the seeds' largest distance
-    from the centre"""
+    """a body moves deformed Gaussians within this many times its seeds'
+    largest distance from its centre"""
     opacity: float = 0.95
     """opacity of the seeds while tracking (an object hides what is behind it)"""
     region_dilation: float = 0.04
-    """the loss counts pixels within this fraction of the image width of the object's motion
-    evidence (5 px at 128 px)"""
+    """the fit counts pixels within this fraction of the image width of the
+    object's evidence (5 px at 128 px)"""
     follow_margin: float = 1.0
-    """in each latent only the evidence within this many object radii (plus the region dilation)
-    of the object's silhouette at the neighbour's transform is this object's: other movers'
-    evidence neither pulls its fit nor counts in its loss"""
+    """evidence within this many object radii of its silhouette (at the
+    neighbour's fit) is its own; other movers' evidence is ignored"""
     silhouette_weight: float = 0.2
-    """weight of |alpha of the translated seeds − motion evidence| (mean over the loss region) added
-    to the colour L1. The evidence is the object's silhouette in every latent, a cue that does not
-    depend on the texture the seeds saw at the reference latent; it places the seeds unturned
-    (translation only), since turned they show only part of the object's outline. Built-in scenes,
-    3000 CPU iterations, input-view PSNR seed 0 / 1 / 2: 0 gave 29.70 / 29.56 / 29.02, 0.2 gave
-    30.06 / 29.86 / 29.37 (moving sphere 21.5 / 20.2 / 19.5 -> 22.4 / 21.2 / 20.5 dB). On seed 1
-    without it the track drifted up to 23 px from the sphere by the clip's end (mask IoU 0.47
-    there after training); the same term on the turned seeds held the turn back (46° where the
-    sphere turns 98°) and gave 29.63 / 29.83 / 29.25"""
+    """weight of |alpha of the translated (unturned) seeds − the object's
+    evidence| beside the colour L1 (docs/method.md)"""
     extrapolate: bool = False
-    """start each latent's fit from the motion extrapolated at the last two latents' velocity
-    (constant velocity in normalised time) instead of the neighbour's fit. It keeps up with a fast
-    spin in few steps (tests/test_rigid_track.py), but on the built-in scene (seed 0, 3000 CPU
-    iterations, lambda_blur 12) it gave 29.25 dB input-view PSNR against 29.57 without"""
+    """start each latent's fit at the last two fits' constant velocity
+    instead of the neighbour's fit (not kept: docs/experiments.md)"""
 
 
 @dataclass

@@ -63,21 +63,14 @@ class DensifyConfig:
     pause_refine_after_reset: int = 0
     """skip refinement for this many steps after an opacity reset"""
     grow_grad2d: float = 0.0007
-    """mean screen-space gradient norm (NDC units per camera, as 3DGS) above which a Gaussian grows
-    (the authors' 7e-4; 3DGS's is 2e-4). Built-in scene, seed 0, 3000 CPU iterations: 2e-4 / 4e-4 /
-    7e-4 grew 117k / 54k / 27k Gaussians, trained in 1009 / 811 / 615 s, input-view PSNR 28.34 /
-    28.31 / 28.14 (the first with edi_centre_weighting 0, the others 2)"""
+    """mean screen-space gradient (NDC units per camera, as 3DGS) above which
+    a Gaussian grows (the authors' 7e-4; 3DGS 2e-4; docs/experiments.md)"""
     grow_grad2d_blur: float = 0.0014
-    """the grow threshold while the blur-formation loss is on (``use_blur_loss``): that loss's
-    gradient adds to the same statistic, and at 7e-4 it grew 2.7 times the Gaussians (74k against
-    27k on the built-in scene, seed 0). Built-in scenes, seeds 0 / 1 / 2, 3000 CPU iterations,
-    lambda_blur 24, two runs sharing the 2 cores: 7e-4 gave input-view PSNR 29.71 / 30.05 / 29.28
-    (mean 29.68) in 964 s a run; 1.4e-3 gave 29.70 / 29.56 / 29.02 (mean 29.43) in 741 s, with
-    30k Gaussians, and keeps the CPU demo inside 15 minutes. More Gaussians buy the last 0.25 dB;
-    on a GPU, 7e-4 is affordable. lambda_blur 48 at 2e-3: mean 29.39 (39k Gaussians on seed 0)"""
+    """grow threshold while the blur loss is on (its gradient joins the
+    statistic); 0.0007 is affordable on a GPU (docs/method.md)"""
     grow_scale3d: float = 0.01
-    """growing Gaussians whose largest scale is below this fraction of the scene scale are cloned,
-    larger ones are split"""
+    """growing Gaussians whose largest scale is below this fraction of the
+    scene scale are cloned, larger ones are split"""
     prune_opa: float = 0.005
     """Gaussians with opacity below this are pruned"""
     prune_scale3d: float = 0.1
@@ -85,8 +78,8 @@ class DensifyConfig:
     revised_opacity: bool = False
     """split with the revised opacity rule of arXiv:2404.06109"""
     absgrad: bool = False
-    """use AbsGS's absolute gradients; neither backend of the rendering contract computes them, so
-    it must stay False"""
+    """use AbsGS's absolute gradients; neither backend of the rendering
+    contract computes them, so it must stay False"""
     verbose: bool = False
     """log the counts of every refinement"""
 

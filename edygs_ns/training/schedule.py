@@ -53,9 +53,8 @@ class PhaseSchedule:
     static_iters: int = 1200
     """iterations of static-region reconstruction (phase 2) after the warm-up"""
     dynamic_window_start: float = 0.15
-    """time curriculum of the dynamic phase: at its start training latents are drawn only within
-    this half-width (normalised time) of the seeds' reference time; 0.5 or more: no curriculum.
-    Built-in scene, 1500 CPU iterations: mask IoU 0.65 without, 0.75 with 0.15"""
+    """dynamic phase's time curriculum: latents are first drawn within this
+    half-width of seeding.reference_time (>= 0.5: off; docs/method.md)"""
     dynamic_window_ramp_iters: int = 3000
     """the window widens linearly to the whole clip over this many dynamic-phase iterations"""
 
