@@ -15,7 +15,7 @@ from edygs_ns.render.torch_backend import rasterize_torch
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 H, W, F = 48, 64, 60.0
-N, REF = 5, 2
+N, REF = 9, 4
 DEPTH = 3.0
 RADIUS = 0.35
 BACKGROUND = 0.4
@@ -79,7 +79,7 @@ def test_evidence_regions_are_separate_and_ordered_by_size():
 
 
 def test_two_objects_are_found_apart_and_each_gets_its_own_track():
-    shifts = [[0.1, 0.0, 0.0], [0.0, 0.1, 0.0]]  # the left ball goes right, the right ball goes down
+    shifts = [[0.15, 0.0, 0.0], [0.0, 0.15, 0.0]]  # the left ball goes right, the right ball goes down
     latents, evidence, statics, depth, viewmats, c2w, Ks, times = _clip(shifts)
     found = _initialise(latents, evidence, statics, depth, viewmats, c2w, Ks, times)
     movers = found.movers

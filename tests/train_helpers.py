@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from nerfstudio.engine.trainer import TrainerConfig
 
 from edygs_ns.configs.method_configs import edygs_trainer_config
@@ -18,15 +20,39 @@ TINY_SCENE = dict(width=48, height=36, n_frames=4, k=5, sim_steps_per_exposure=1
 TINY_DEFORMATION = DeformationConfig(depth=4, width=32, skip_layer=2, xyz_frequencies=4, time_frequencies=3)
 
 
-def make_tiny_scene(root: Path) -> Path:
-    """Raw capture -> processed scene with the true poses (no COLMAP); returns the scene folder."""
+def room_points(config: SynthConfig, count: int = 4000, seed: int = 0):
+    """``count`` points on the static surfaces of the synthetic room (world frame, the true poses'
+    frame) with their shaded texture colours: [P, 3] float xyz, [P, 3] uint8 rgb. Stands in for
+    the sparse points a pose-and-structure step would give, so a short test run starts from a
+    sensible static model."""
+    from edygs_ns.scripts.synth import build_world
+
+    scene = build_world(config).scene
+    rng = np.random.default_rng(seed)
+    area = np.array([np.linalg.norm(np.cross(q.edge_u, q.edge_v)) for q in scene.quads])
+    ids = rng.choice(len(scene.quads), size=count, p=area / area.sum())
+    a, b = rng.uniform(size=count), rng.uniform(size=count)
+    stack = scene.quad_stack
+    xyz = stack.origins[ids] + a[:, None] * stack.edges_u[ids] + b[:, None] * stack.edges_v[ids]
+    rgb = scene.atlas.sample(ids, a, b) * scene.quad_shading[ids][:, None]
+    return xyz, np.rint(np.clip(rgb, 0.0, 1.0) * 255).astype(np.uint8)
+
+
+def make_tiny_scene(root: Path, room_init: bool = False, **overrides) -> Path:
+    """Raw capture -> processed scene with the true poses (no COLMAP); returns the scene folder.
+    ``overrides``: SynthConfig fields changed from TINY_SCENE (e.g. preset="two-objects");
+    ``room_init``: initial points on the room's surfaces instead of random ones."""
+    from edygs_ns.preprocess.writer import PLY_NAME, write_ply
     from edygs_ns.scripts.process import ProcessConfig, process
 
-    raw = write_synthetic_scene(SynthConfig(output_dir=root / "raw", **TINY_SCENE))
+    synth = SynthConfig(output_dir=root / "raw", **{**TINY_SCENE, **overrides})
+    raw = write_synthetic_scene(synth)
     config = ProcessConfig(output=root / "scene", poses="given", num_random_points=2000)
     config.inputs.exposures = raw / "exposures.csv"
     config.inputs.events = raw / "events.h5"
     process(config)
+    if room_init:
+        write_ply(root / "scene" / PLY_NAME, *room_points(synth))
     return root / "scene"
 
 

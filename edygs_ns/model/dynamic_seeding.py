@@ -89,12 +89,12 @@ class DynamicSeedingConfig:
     """at most this many moving objects get seeds and a rigid body (model/motion_init.py)"""
     max_candidates: int = 10
     """at most this many evidence regions are tracked (movers and still flaws of the static model)"""
-    still_shift: float = 0.25
-    """a tracked region is a mover only if it shifts this many of its radii
-    in the image over the clip, or turns still_turn"""
-    still_turn: float = 0.2
-    """radians; see ``still_shift``"""
-    min_presence: float = 0.25
+    still_shift: float = 1.0
+    """a tracked region is a mover only if, in some latent, it lies this many of its radii from
+    where any static point on its reference ray would be (and ``still_shift_fraction``)"""
+    still_shift_fraction: float = 0.05
+    """... and at least this fraction of the image width (a track of a few pixels jitters by one)"""
+    min_presence: float = 0.4
     """a mover's evidence (near its track) is found in at least this share of the latents"""
     min_object_iou: float = 0.3
     """a mover's tracked silhouette overlaps its evidence by at least this mean IoU"""

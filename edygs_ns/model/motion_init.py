@@ -15,9 +15,13 @@ deformation's base motion (``deformation.RigidMotion``), and the mask-consistenc
    (``rigid_track.track_rigid``, which follows only the evidence near the object), its coverage
    seeds and its own reach. A region is a mover only if its track holds: its evidence is found in
    at least ``min_presence`` of the latents and the tracked silhouette overlaps it (mean IoU at
-   least ``min_object_iou``; scattered residual noise does neither), and the track moves in the
-   image by ``still_shift`` of its radius or turns by ``still_turn`` (otherwise it is a flaw of the
-   static model). A region that is no mover gets no seeds and no body: nothing moving, nothing added.
+   least ``min_object_iou``; scattered residual noise does neither), and no static point explains
+   the track: wherever on the reference latent's ray through the region a still point is put (the
+   static depth may be wrong), the tracked centre strays from it by ``still_shift`` of the region's
+   radius (and ``still_shift_fraction`` of the image width) in some latent. Otherwise it is a flaw of the static model. A track that mostly runs
+   inside a mover's claimed zone is that mover again (started where it crossed another object). A region that is no mover gets
+   no seeds and no body: nothing moving, nothing added. An object that only turns in place is not
+   told from a flaw (its rotation fit on a few pixels is noise-level evidence).
 4. M̂ is the evidence near the kept objects' tracks (the rest of the evidence is no object).
 
 The rigid body is the base of the deformation, not its limit: the MLP's residual (zero at the
@@ -120,18 +124,53 @@ def _next_region(evidence: Tensor, covered: Tensor, ref: int, min_pixels: int) -
     return best
 
 
-def image_shift(track: RigidTrack, viewmats: Float[Tensor, "N 4 4"], Ks: Float[Tensor, "N 3 3"]) -> Float[Tensor, "N"]:
-    """How far (pixels) the tracked centre lies from where the centre would be if it stood still,
-    in every latent. Motion along the viewing ray, which one view cannot tell from a change of size,
-    barely counts."""
+#: Distances along the reference ray (as multiples of the tracked centre's distance) tried as the
+#: depth of a static point that might explain a tracked region.
+STATIC_DEPTH_FACTORS = torch.logspace(-0.5, 0.5, 41)
 
-    def project(points: Tensor) -> Tensor:
-        cam = torch.einsum("nij,nj->ni", viewmats[:, :3, :3], points) + viewmats[:, :3, 3]
-        pix = torch.einsum("nij,nj->ni", Ks, cam)
-        return pix[:, :2] / pix[:, 2:].clamp_min(1e-9)
 
-    still = track.centre.expand(viewmats.shape[0], 3)
-    return (project(still + track.translations) - project(still)).norm(dim=-1)
+def _project(points: Tensor, viewmats: Tensor, Ks: Tensor) -> Tensor:
+    """Pixel positions [N, 2] of one world point [N, 3] per camera (viewmats world-to-camera, OpenCV)."""
+    cam = torch.einsum("nij,nj->ni", viewmats[:, :3, :3], points) + viewmats[:, :3, 3]
+    pix = torch.einsum("nij,nj->ni", Ks, cam)
+    return pix[:, :2] / pix[:, 2:].clamp_min(1e-9)
+
+
+def unexplained_shift(track: RigidTrack, ref: int, viewmats: Float[Tensor, "N 4 4"], Ks: Float[Tensor, "N 3 3"],
+                      cams_to_world_cv: Float[Tensor, "N 4 4"]) -> float:
+    """How far (pixels) the tracked centre strays from the best static explanation: a point that
+    stands still somewhere on the reference latent's ray through the centre (the static depth it
+    was seeded at may be wrong, which alone makes a static flaw seem to move as the camera moves).
+    The largest distance over the latents where the track saw the object, minimised over depths."""
+    n = viewmats.shape[0]
+    seen = torch.isfinite(track.iou) if track.iou is not None else torch.ones(n, dtype=torch.bool)
+    seen = seen.to(viewmats.device)
+    if not bool(seen.any()):
+        return 0.0
+    tracked = _project(track.centre + track.translations, viewmats, Ks)[seen]
+    origin = cams_to_world_cv[ref, :3, 3]
+    best = float("inf")
+    for factor in STATIC_DEPTH_FACTORS.tolist():
+        still = (origin + factor * (track.centre - origin)).expand(n, 3)
+        shift = (tracked - _project(still, viewmats, Ks)[seen]).norm(dim=-1).max()
+        best = min(best, float(shift))
+    return best
+
+
+def _duplicate(track: RigidTrack, movers: List[MotionObject], share: float = 0.5) -> bool:
+    """Whether ``track`` follows a mover already found: in the median latent where it sees its
+    object, more than ``share`` of its footprint lies in that mover's claimed zone (two tracks of
+    one object, e.g. one started where the object crossed another)."""
+    own = track.footprints
+    sizes = own.flatten(1).sum(dim=1)
+    seen = sizes > 0
+    if not bool(seen.any()):
+        return False
+    for other in movers:
+        inside = (own & other.track.claims).flatten(1).sum(dim=1)[seen] / sizes[seen]
+        if float(inside.median()) > share:
+            return True
+    return False
 
 
 def initialise_motion(
@@ -179,12 +218,13 @@ def initialise_motion(
         every = Seeds(points, torch.cat([seeds.colors, extra.colors]), torch.cat([seeds.radii, extra.radii]), track.centre)
         distances = (points - track.centre).norm(dim=-1)
         radius_px = (float(region.sum()) / torch.pi) ** 0.5
-        shift = float(image_shift(track, viewmats, Ks).max()) / max(radius_px, 1e-9)
-        turn = float(track.rotvecs.norm(dim=-1).max())
+        shift_px = unexplained_shift(track, k, viewmats, Ks, cams_to_world_cv)
+        shift = shift_px / max(radius_px, 1e-9)
         iou = track.iou[torch.isfinite(track.iou)]
         presence = len(iou) / n
         consistent = presence >= seeding.min_presence and len(iou) > 0 and float(iou.mean()) >= seeding.min_object_iou
-        moved = consistent and (shift >= seeding.still_shift or turn >= seeding.still_turn)
+        far = shift >= seeding.still_shift and shift_px >= seeding.still_shift_fraction * width
+        moved = consistent and far and not _duplicate(track, result.movers)
         reach = tracking.reach * float(distances.max())
         result.objects.append(MotionObject(k, every, track, reach, shift, moved))
         covered |= track.claims
