@@ -189,6 +189,27 @@ def test_novel_cameras_follow_the_training_frame():
     assert fit_gt_to_model(gt_train[:2], gt_train[:2])[0] is None
 
 
+def test_the_frame_rotation_comes_from_the_camera_orientations():
+    """Cameras on a straight line with centre noise: the centres alone cannot fix the rotation
+    about the line, the cameras' orientations can."""
+    from edygs_ns.eval.trajectory import rotation_angle, umeyama_sim3
+
+    rng = np.random.default_rng(5)
+    n = 20
+    gt = np.tile(np.eye(4), (n, 1, 1))
+    gt[:, 0, 3] = np.linspace(-1.0, 1.0, n)  # a straight sweep along x
+    gt[:, :3, 3] += rng.normal(0.0, 0.01, size=(n, 3))  # the path is not exactly straight
+    angle = 0.3
+    true_rot = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(angle), -np.sin(angle)], [0.0, np.sin(angle), np.cos(angle)]])  # about x
+    model = apply_sim3(gt, (1.2, true_rot, np.array([0.1, 0.2, 0.3])))
+    model[:, :3, 3] += rng.normal(0.0, 0.01, size=(n, 3))  # estimated centres are noisy too
+    fitted, _ = fit_gt_to_model(gt, model)
+    centres_only = umeyama_sim3(gt[:, :3, 3], model[:, :3, 3])
+    assert np.degrees(rotation_angle(fitted[1] @ true_rot.T)) < 0.5
+    assert np.degrees(rotation_angle(centres_only[1] @ true_rot.T)) > 1.5  # what centres alone give
+    assert fitted[0] == pytest.approx(1.2, rel=0.02)
+
+
 def test_time_sweep_renders_one_viewpoint_over_time(run_config, tmp_path):
     import shutil
 
