@@ -103,6 +103,12 @@ def test_evaluate_run_writes_every_metric_and_figure(run_config, tmp_path):
     unfitted = rows[NOVEL_UNFITTED_SPLIT]
     assert unfitted["n"] == 2 and math.isfinite(unfitted["psnr"]["mean"]) and "fitted to its image" not in unfitted["note"]
     assert unfitted[PER_VIEW_KEY]["time"] == rows[NOVEL_SPLIT][PER_VIEW_KEY]["time"]
+    # ... and written as an ns-render camera path: the same cameras, each at its own time
+    from nerfstudio.cameras.camera_paths import get_path_from_json
+
+    path = get_path_from_json(json.loads((out / "novel_camera_path.json").read_text()))
+    assert path.shape[0] == 2 and path.times is not None
+    assert sorted(path.times.reshape(-1).tolist()) == pytest.approx(sorted(unfitted[PER_VIEW_KEY]["time"]))
     for split in (INPUT_SPLIT, NOVEL_SPLIT, NOVEL_UNFITTED_SPLIT):  # mean rendered motion mask
         assert 0.0 <= rows[split]["mask_mean"]["mean"] <= 1.0
     for key in REGION_PSNR_KEYS:  # the fixture's masks split every view into both regions

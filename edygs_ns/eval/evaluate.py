@@ -35,6 +35,7 @@ moves). Written files, under `output_dir`:
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -59,6 +60,7 @@ from edygs_ns.eval.pose_alignment import (
     Sim3,
     TrainPoses,
     align_cameras,
+    camera_path_json,
     novel_alignment,
     pose_rows,
     refined_train_poses,
@@ -91,6 +93,8 @@ GRID_COLUMNS: Tuple[str, ...] = ("blurry input", "EDI latent", "ours", "ground t
 #: Output names inside the output folder.
 GRID_DIR = "grids"
 TRAJECTORY_PNG = "trajectory.png"
+#: ns-render camera-path file of the mapped novel cameras (what "novel views (no pose fit)" scores).
+NOVEL_CAMERA_PATH = "novel_camera_path.json"
 PSNR_PNG_PATTERN = "psnr_over_time_{slug}.png"
 OVERVIEW_SUFFIX = "overview"
 #: Default number of views per split drawn as grids (evenly spaced); negative draws all.
@@ -512,6 +516,8 @@ def evaluate_pipeline(
     if split in ("novel", "both"):
         sim3, sim3_note = novel_alignment(poses, align_novel)
         aligned = novel_views(pipeline, sim3, sim3_note)
+        (output_dir / NOVEL_CAMERA_PATH).write_text(json.dumps(camera_path_json(aligned.cameras), indent=1))
+        notes.append(f"{NOVEL_CAMERA_PATH}: the novel cameras as mapped, for ns-render camera-path (no pose fitting).")
         novel = fit_group_poses(model, aligned, novel_pose_fit or NovelPoseFitConfig())
         rows[NOVEL_SPLIT], _ = evaluate_group(model, novel, lpips, grid_dir, max_grids)
         psnr_plots.append((novel, rows[NOVEL_SPLIT], {}))

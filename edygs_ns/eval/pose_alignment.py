@@ -195,3 +195,21 @@ def novel_alignment(poses: TrainPoses, enabled: bool) -> Tuple[Optional[Sim3], s
     scale, rot, trans = sim3
     angle = math.degrees(float(rotation_angle(rot)))
     return sim3, f"Sim(3) GT -> refined training poses: scale {scale:.4f}, rotation {angle:.3f} deg, |t| {np.linalg.norm(trans):.4g}"
+
+
+def camera_path_json(cameras: Cameras) -> Dict[str, Any]:
+    """An ``ns-render camera-path`` file that renders ``cameras`` [N] (already in the model frame,
+    e.g. novel cameras moved by ``align_cameras``) one per frame, each at its own time: the true
+    novel views as a user renders them, no per-view pose fitting. Field of view from fy and the
+    height (the path format has no principal point: it is taken at the image centre)."""
+    height, width = int(cameras.height[0, 0]), int(cameras.width[0, 0])
+    path = []
+    for i in range(cameras.shape[0]):
+        c2w = to_homogeneous(cameras.camera_to_worlds[i : i + 1])[0]
+        fov = 2.0 * math.degrees(math.atan(0.5 * height / float(cameras.fy[i, 0])))
+        entry: Dict[str, Any] = {"camera_to_world": c2w.reshape(-1).tolist(), "fov": fov, "aspect": width / height}
+        if cameras.times is not None:
+            entry["render_time"] = float(cameras.times[i, 0])
+        path.append(entry)
+    return {"render_height": height, "render_width": width, "seconds": float(len(path)), "fps": 1, "camera_path": path}
+
