@@ -13,7 +13,9 @@ def mask_l1(mask: Float[Tensor, "*B H W 1"]) -> Tensor:
 
 
 def mask_consistency(mask: Float[Tensor, "*B H W 1"], reference: Float[Tensor, "*B H W 1"]) -> Tensor:
-    """‖M − M̂‖₁ (mean) against the mask rendered at the end of the static phase (Eq. 8)."""
+    """‖M − M̂‖₁ (mean) against the targets M̂ fixed at the static -> dynamic switch (Eq. 8: the
+    paper's M̂ is the mask rendered by the static model; by default ours is the motion evidence
+    near the moving objects, docs/method.md D6)."""
     if mask.shape != reference.shape:
         raise ValueError(f"mask_consistency: mask {tuple(mask.shape)} vs reference {tuple(reference.shape)}")
     return (mask - reference.detach()).abs().mean()

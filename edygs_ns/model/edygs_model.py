@@ -184,7 +184,8 @@ class EdygsModel(SplatExportView):
         self.exposure_cache = ExposureCache(blurry_index)
         self.strategy = make_strategy(self.config.densify, blur_loss=self.config.use_blur_loss)
         self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
-        # motion masks M̂ rendered at the end of the static phase, one per training latent [N, H, W]
+        # mask-consistency targets M̂ fixed at the dynamic switch, one per training latent [N, H, W]
+        # (motion evidence near the movers, or the static model's rendered mask: seeding.consistency_target)
         self.register_buffer("static_masks", torch.zeros(0, 0, 0, dtype=torch.float16))
         self.step = 0
         self.optimizers: Dict[str, torch.optim.Optimizer] = {}

@@ -1,11 +1,11 @@
-"""Rigid tracking of the dynamic seeds by photometric alignment (the motion initialisation).
+"""Rigid tracking of one moving object's seeds by photometric alignment (motion initialisation).
 
-The seeds of the dynamic region are back-projected from one latent (``dynamic_seeding.py``). The
-object they belong to moves *and turns*: the built-in sphere spins half a turn over a clip, a
-thrown or rolling object does the same. A translation track of the evidence blob cannot express
-that, so the deformation field would have to discover the rotation from the photometric loss in
-the few hundred iterations of the dynamic phase, and until it does every seed is the time-average
-of the colours that pass through it (a smeared object).
+The seeds of one moving object are back-projected from one evidence region of one latent
+(``motion_init.py``). The object moves *and turns*: the built-in sphere spins half a turn over a
+clip, a thrown or rolling object does the same. A translation track of the evidence blob cannot
+express that, so the deformation field would have to discover the rotation from the photometric
+loss in the few hundred iterations of the dynamic phase, and until it does every seed is the
+time-average of the colours that pass through it (a smeared object).
 
 Here the seeds' motion is first estimated as one rigid transform per training latent,
 
@@ -14,11 +14,12 @@ Here the seeds' motion is first estimated as one rigid transform per training la
 about the seeds' centre c. Each (ω_i, τ_i) is fitted by a few Adam steps on the L1 difference
 between the latent and the seeds rendered over the static model's render of that latent (the
 seeds alone are rasterised, so a step costs a few hundred Gaussians), plus a silhouette term
-between the seeds' alpha and the latent's motion evidence. Latents are visited
-outwards in time from the reference latent, each one starting from its neighbour's transform; the
-loss counts the pixels near the latent's motion evidence. The rigid offsets then become the deformation field's regression target
-(``dynamic_seeding.fit_motion``) and place extra seeds for the parts of the object that the
-reference latent did not see (``coverage_seeds``).
+between the seeds' alpha and the object's motion evidence. Latents are visited outwards in time
+from the object's reference latent, each one starting from its neighbour's transform; in each
+latent only the evidence near the object's silhouette at that start counts (another mover's
+evidence neither pulls the fit nor enters its loss). The track becomes the object's rigid body
+in the deformation (``deformation.RigidMotion``), places extra seeds for the parts the reference
+latent did not see (``coverage_seeds``), and its footprints say which evidence is this object's.
 """
 
 from __future__ import annotations
