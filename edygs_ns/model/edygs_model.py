@@ -7,6 +7,7 @@ The model orchestrates; the maths lives in ``losses/``, ``model/deformation.py``
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from typing import Dict, List, Literal, Optional, Tuple, Type, Union
 
@@ -290,6 +291,7 @@ class EdygsModel(SplatExportView):
         evidence, find the moving objects, seed and track each (model/motion_init.py)."""
         if self._train_cameras is None:
             return
+        started = time.perf_counter()
         cameras = self._train_cameras.to(self.device)
         use_evidence = self.seeding_active and self._train_image is not None
         masks, statics, residuals, depths, cams_to_world = [], [], [], [], []
@@ -357,7 +359,7 @@ class EdygsModel(SplatExportView):
             losses = fit_motion(self.deformation, points, fit_times, offsets, cfg)
             if losses:
                 message += f", motion initialised (fit loss {losses[0]:.4f} -> {losses[-1]:.4f})"
-        CONSOLE.log(message)
+        CONSOLE.log(message + f"\n  (switch took {time.perf_counter() - started:.1f} s)")
 
     # ------------------------------------------------------------ rendering
     def camera_indices(self, camera: Cameras) -> Optional[Tensor]:

@@ -71,6 +71,10 @@ class RigidTrackConfig:
     instead of the neighbour's fit (not kept: docs/experiments.md)"""
 
 
+#: A window (y0, y1, x0, x1) of an image: rows y0..y1-1, columns x0..x1-1.
+Window = Tuple[int, int, int, int]
+
+
 @dataclass
 class RigidTrack:
     """Per-latent rigid transforms of the seeds: rotation vectors [N, 3] (radians), translations
@@ -171,14 +175,31 @@ def track_rigid(
     outlines = torch.zeros_like(evidence)  # this object's evidence, filled per latent
     regions = torch.zeros_like(evidence, dtype=torch.bool)
 
-    def silhouette(i: int, rotvec: Tensor, unit: Tensor, turn: bool = True) -> Tensor:
-        """[H, W] alpha of the seeds at latent i under (rotvec, unit); unturned if not ``turn``."""
+    def rasterize(i: int, means: Tensor, features: Tensor, win: Optional[Window] = None):
+        """The seeds at ``means`` seen from latent i: the whole image, or only the window
+        (y0, y1, x0, x1) of it (the principal point shifted; the same pixels, far fewer of them)."""
+        if win is None:
+            return backend(means, quats, scales, opacities, features, viewmats[i : i + 1], Ks[i : i + 1], width, height)
+        y0, y1, x0, x1 = win
+        K = Ks[i : i + 1].clone()
+        K[:, 0, 2] -= x0
+        K[:, 1, 2] -= y0
+        return backend(means, quats, scales, opacities, features, viewmats[i : i + 1], K, x1 - x0, y1 - y0)
+
+    def silhouette(i: int, rotvec: Tensor, unit: Tensor, turn: bool = True, win: Optional[Window] = None) -> Tensor:
+        """[H, W] (or window) alpha of the seeds at latent i under (rotvec, unit); unturned if not ``turn``."""
         if turn:
             moved = rigid_apply(points, centre, rotation_matrices(rotvec[None]), (unit * size)[None])[0]
         else:
             moved = points + (unit * size)[None]
         # only alpha is read, so one feature channel is composited
-        return backend(moved, quats, scales, opacities, colors[:, :1], viewmats[i : i + 1], Ks[i : i + 1], width, height).alpha[0, ..., 0]
+        return rasterize(i, moved, colors[:, :1], win).alpha[0, ..., 0]
+
+    def window(i: int) -> Window:
+        """The box around latent i's loss region (the only pixels the fit reads), 2 px of margin."""
+        rows = torch.nonzero(regions[i].any(dim=1)).squeeze(-1)
+        cols = torch.nonzero(regions[i].any(dim=0)).squeeze(-1)
+        return (max(int(rows[0]) - 2, 0), min(int(rows[-1]) + 3, height), max(int(cols[0]) - 2, 0), min(int(cols[-1]) + 3, width))
 
     def grow(mask: Tensor, pixels: int) -> Tensor:
         return torch.nn.functional.max_pool2d(mask.float()[None, None], 2 * pixels + 1, stride=1, padding=pixels)[0, 0] > 0.5
@@ -195,16 +216,20 @@ def track_rigid(
         regions[i] = grow(outlines[i] > 0.5, dilation)
 
     def render_loss(i: int, rotvec: Tensor, unit: Tensor, target: Tensor) -> Tensor:
-        """Fit loss of latent i (RGB ``target``) for the transform (rotvec, unit)."""
+        """Fit loss of latent i (RGB ``target`` [H, W, 3]) for the transform (rotvec, unit),
+        rendered only in the window around its loss region."""
+        win = window(i)
+        y0, y1, x0, x1 = win
+        region, outline = regions[i, y0:y1, x0:x1], outlines[i, y0:y1, x0:x1]
         moved = rigid_apply(points, centre, rotation_matrices(rotvec[None]), (unit * size)[None])[0]
-        out = backend(moved, quats, scales, opacities, colors, viewmats[i : i + 1], Ks[i : i + 1], width, height)
-        composite = out.render[0] + (1.0 - out.alpha[0]) * backgrounds[i]
-        loss = (composite - target).abs()[regions[i]].mean()
+        out = rasterize(i, moved, colors, win)
+        composite = out.render[0] + (1.0 - out.alpha[0]) * backgrounds[i, y0:y1, x0:x1]
+        loss = (composite - target[y0:y1, x0:x1]).abs()[region].mean()
         if config.silhouette_weight > 0:
             # the seeds are only the part the reference latent saw: turned, their outline would no
             # longer be the object's, so the silhouette places the unturned seeds (translation only)
-            alpha = silhouette(i, rotvec, unit, turn=False)
-            loss = loss + config.silhouette_weight * (alpha - outlines[i])[regions[i]].abs().mean()
+            alpha = silhouette(i, rotvec, unit, turn=False, win=win)
+            loss = loss + config.silhouette_weight * (alpha - outline)[region].abs().mean()
         return loss
 
     focus(ref, rotvecs[ref], units[ref])
