@@ -85,6 +85,8 @@ class DynamicSeedingConfig:
     min_object_fraction: float = 0.002
     """evidence regions below this fraction of the image (25 px at 128x96)
     are noise; also the least evidence of a translation-track point"""
+    min_relative_size: float = 0.1
+    """evidence regions below this fraction of the first (largest) tracked region are not tracked"""
     max_objects: int = 6
     """at most this many moving objects get seeds and a rigid body (model/motion_init.py)"""
     max_candidates: int = 10

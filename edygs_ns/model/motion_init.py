@@ -10,7 +10,8 @@ deformation's base motion (``deformation.RigidMotion``), and the mask-consistenc
    ``reference_time``), largest first, then, while any latent still holds a large evidence region
    that no object found so far covers, the largest of those, with its own latent as reference (an
    object missed or unseen at the reference time). Regions smaller than ``min_object_fraction`` of
-   the image are noise.
+   the image, or than ``min_relative_size`` of the first (largest) region, are noise: every
+   tracked region costs a full track at the switch.
 3. Each object gets its own seeds (a cap at its own median static depth), its own rigid track
    (``rigid_track.track_rigid``, which follows only the evidence near the object), its coverage
    seeds and its own reach. A region is a mover only if its track holds: its evidence is found in
@@ -206,6 +207,9 @@ def initialise_motion(
         if found is None or len(result.movers) >= seeding.max_objects:
             break
         k, region = found
+        # each track costs as much as the largest one: once a large region was tracked, much
+        # smaller ones (pose-error specks, fragments) are not worth one
+        min_pixels = max(min_pixels, int(seeding.min_relative_size * float(region.sum())))
         seeds = seed_gaussians(region.float(), depth[k], latent(k), Ks[k], cams_to_world_cv[k], seeding)
         if len(seeds.points) == 0:
             covered[k] |= region
