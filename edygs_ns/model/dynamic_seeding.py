@@ -99,7 +99,10 @@ class DynamicSeedingConfig:
     min_presence: float = 0.4
     """a mover's evidence (near its track) is found in at least this share of the latents"""
     min_object_iou: float = 0.3
-    """a mover's tracked silhouette overlaps its evidence by at least this mean IoU"""
+    """a mover's tracked silhouette overlaps its evidence by at least this mean IoU ..."""
+    steady_presence: float = 0.75
+    """... unless its evidence is found in this share of the latents (then its rigid fit is poor,
+    e.g. a deforming object: its body only translates and the MLP does the rest)"""
 
 
 def box_filter(images: Float[Tensor, "N H W"], size: int) -> Float[Tensor, "N H W"]:

@@ -19,7 +19,10 @@ deformation's base motion (``deformation.RigidMotion``), and the mask-consistenc
    least ``min_object_iou``; scattered residual noise does neither), and no static point explains
    the track: wherever on the reference latent's ray through the region a still point is put (the
    static depth may be wrong), the tracked centre strays from it by ``still_shift`` of the region's
-   radius (and ``still_shift_fraction`` of the image width) in some latent. Otherwise it is a flaw of the static model. A track that mostly runs
+   radius (and ``still_shift_fraction`` of the image width) in some latent. A region followed
+   through ``steady_presence`` of the latents is kept even when the rigid silhouette fits it
+   poorly (a deforming or articulated object); its body then moves without turning and the
+   deformation MLP's residual carries the rest (the fallback where a rigid fit is poor). Otherwise it is a flaw of the static model. A track that mostly runs
    inside a mover's claimed zone is that mover again (started where it crossed another object). A region that is no mover gets
    no seeds and no body: nothing moving, nothing added. An object that only turns in place is not
    told from a flaw (its rotation fit on a few pixels is noise-level evidence).
@@ -226,10 +229,18 @@ def initialise_motion(
         shift = shift_px / max(radius_px, 1e-9)
         iou = track.iou[torch.isfinite(track.iou)]
         presence = len(iou) / n
-        consistent = presence >= seeding.min_presence and len(iou) > 0 and float(iou.mean()) >= seeding.min_object_iou
+        rigid_fit = len(iou) > 0 and float(iou.mean()) >= seeding.min_object_iou
+        # a region followed through most of the clip is real even when one rigid silhouette fits it
+        # poorly (a deforming or articulated object): its track then only carries it, see below
+        consistent = presence >= seeding.min_presence and (rigid_fit or presence >= seeding.steady_presence)
         far = shift >= seeding.still_shift and shift_px >= seeding.still_shift_fraction * width
         moved = consistent and far and not _duplicate(track, result.movers)
         reach = tracking.reach * float(distances.max())
+        if moved and not rigid_fit:
+            # poor rigid fit: keep the track's translation as the base motion, drop its rotation (a
+            # turn fitted to a changing shape is noise); the MLP residual carries the rest
+            track = RigidTrack(track.centre, torch.zeros_like(track.rotvecs), track.translations, track.loss,
+                               track.footprints, track.claims, track.iou)
         result.objects.append(MotionObject(k, every, track, reach, shift, moved))
         covered |= track.claims
         covered[k] |= region
