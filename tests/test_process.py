@@ -76,7 +76,7 @@ def _check_layout(scene: Path, n: int, k: int, height: int, width: int) -> dict:
 
 
 def test_form_b_given_poses_writes_the_layout(raw: Path, tmp_path: Path) -> None:
-    report = process(_config(tmp_path / "scene", raw, poses="given", num_random_points=500))
+    report = process(_config(tmp_path / "scene", raw, poses="given", given_points="random", num_random_points=500))
     scene = tmp_path / "scene"
     meta = _check_layout(scene, TINY["n_frames"], K, TINY["height"], TINY["width"])
     assert meta["pose_source"] == "given" and report["registered_latents"] == report["total_latents"] == 18

@@ -9,8 +9,10 @@ Steps, each with a progress bar and a one-line summary with its time:
    exposure (k per frame) and the event maps between them.
 3. ``poses``: COLMAP on the latents (SIFT, sequential matching, incremental mapping, one
    shared camera), or the poses given by the input (``--poses given``: a synthetic capture's
-   gt/transforms.json, E2NeRF or EvDeblurNeRF poses, or ``--given-poses FILE``) with random initial points
-   back-projected from random pixels of the latents (the points are random, not triangulated).
+   gt/transforms.json, E2NeRF or EvDeblurNeRF poses, or ``--given-poses FILE``) with initial points
+   triangulated from the latents at those poses (:mod:`edygs_ns.preprocess.triangulate`), or random
+   points back-projected from random pixels of the latents (``--given-points random``, or with a
+   warning when triangulation fails).
 4. ``write``: the processed layout of docs/layouts.md, transforms.json last.
 
 When COLMAP registers fewer than ``--min-registered-fraction`` of the latents the command stops
@@ -49,6 +51,7 @@ from edygs_ns.data.layouts.common import Intrinsics
 from edygs_ns.preprocess.inputs import Capture, InputConfig, calibration_path, load_capture, read_image
 from edygs_ns.preprocess.motion_check import check_camera_moves
 from edygs_ns.preprocess.steps import StepRunner, file_signature, fingerprint, progress_bar
+from edygs_ns.preprocess.triangulate import GivenPoints, TriangulationConfig, initial_points_at_poses
 from edygs_ns.preprocess.writer import (
     REPORT_NAME,
     SCENE_ENTRIES,
@@ -72,6 +75,8 @@ POSES_NPZ = "poses.npz"
 EVENT_MAPS_WORK = "event_maps.npy"
 CONTRAST_JSON = "contrast.json"
 COLMAP_WORK = "colmap"
+TRIANGULATION_WORK = "triangulation"
+INITIAL_POINTS_JSON = "initial_points.json"
 #: Exit status after Ctrl-C (128 + SIGINT, as shells report it).
 INTERRUPTED_EXIT_CODE = 130
 #: Microseconds per second (summaries in seconds).
@@ -113,12 +118,16 @@ class ProcessConfig:
     edi: Annotated[ProcessEdiConfig, tyro.conf.arg(name="")] = field(default_factory=ProcessEdiConfig)
     poses: Literal["colmap", "given"] = "colmap"
     """Where poses come from: COLMAP on the EDI latents, or the input's own poses (GT of a synthetic
-    capture, E2NeRF or EvDeblurNeRF poses, or --given-poses FILE) with random initial points."""
+    capture, E2NeRF or EvDeblurNeRF poses, or --given-poses FILE) with initial points from --given-points."""
+    given_points: GivenPoints = "triangulated"
+    """Initial points with --poses given: triangulated from the latents at the given poses (SIFT and matching as
+    --colmap.*; random points, with a warning, when too few come out), or random (the behaviour before 2026-12)."""
+    triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
     colmap: ColmapConfig = field(default_factory=ColmapConfig)
     min_registered_fraction: float = 0.9
     """Stop (and write no transforms.json) when COLMAP registers fewer than this share of the latents."""
     num_random_points: int = 20000
-    """Initial points drawn when poses are given (back-projected random pixels at random depths)."""
+    """Random initial points (--given-points random, or the fallback): back-projected random pixels at random depths."""
     random_depth_range: Optional[Tuple[float, float]] = None
     """(near, far) depth of the random points, world units. None: from the input (E2NeRF/EvDeblurNeRF bounds,
     scene.json's room), else 0.5-5x the camera path's diameter."""
@@ -327,7 +336,7 @@ class Pipeline:
                 f"{self.config.edi.color_space}), total |signed bin count| {total_events:,.0f}")
 
     def poses(self) -> str:
-        """COLMAP on the latents, or the given poses with random initial points."""
+        """COLMAP on the latents, or the given poses with triangulated (or random) initial points."""
         names = [p.name for row in self.latent_paths() for p in row]
         if self.config.poses == "colmap":
             check_camera_moves([row[len(row) // 2] for row in self.latent_paths()], self.config.colmap.min_motion_px)
@@ -341,13 +350,20 @@ class Pipeline:
         with np.load(self.work / GIVEN_POSES_NPZ) as data:
             c2w = data["c2w"].reshape(-1, 4, 4)
         intrinsics = Intrinsics(**meta["given_intrinsics"])
-        depth_range = self._depth_range(meta, c2w)
-        rng = np.random.default_rng(self.config.seed)
-        flat_paths = [p for row in self.latent_paths() for p in row]
-        xyz, rgb = random_points_from_views(flat_paths, c2w, intrinsics, depth_range, self.config.num_random_points, rng)
-        np.savez(self.work / POSES_NPZ, xyz=xyz, rgb=rgb, depth_range=np.asarray(depth_range))
-        return (f"given poses for {len(names)} latents from {meta['given_source']}; {len(xyz):,} random points "
-                f"at depths {depth_range[0]:.3g}-{depth_range[1]:.3g}")
+
+        def random_points() -> Tuple[np.ndarray, np.ndarray, str]:
+            depth_range = self._depth_range(meta, c2w)
+            rng = np.random.default_rng(self.config.seed)
+            flat_paths = [p for row in self.latent_paths() for p in row]
+            xyz, rgb = random_points_from_views(flat_paths, c2w, intrinsics, depth_range, self.config.num_random_points, rng)
+            return xyz, rgb, f"{len(xyz):,} random points at depths {depth_range[0]:.3g}-{depth_range[1]:.3g}"
+
+        points = initial_points_at_poses(self.config.given_points, self.work / "latents", names, c2w, intrinsics,
+                                         self.work / TRIANGULATION_WORK, self.config.colmap, self.config.triangulation,
+                                         random_points)
+        np.savez(self.work / POSES_NPZ, xyz=points.xyz, rgb=points.rgb)
+        (self.work / INITIAL_POINTS_JSON).write_text(json.dumps(points.report(), indent=2))
+        return f"given poses for {len(names)} latents from {meta['given_source']}; {points.summary}"
 
     def colmap_settings(self) -> Tuple[ColmapConfig, str]:
         """The COLMAP settings with the capture's calibration applied (with_calibration), and a note."""
@@ -395,8 +411,10 @@ class Pipeline:
     def pose_report(self, result: Optional[ColmapResult]) -> Dict[str, Any]:
         n_latents = len(self.exposures()) * self.k
         if result is None:
+            points = self.work / INITIAL_POINTS_JSON
             return {"pose_source": "given", "registered_latents": n_latents, "total_latents": n_latents,
-                    "registered_fraction": 1.0, "unregistered_latents": [], "mean_reprojection_error_px": None}
+                    "registered_fraction": 1.0, "unregistered_latents": [], "mean_reprojection_error_px": None,
+                    "initial_points": json.loads(points.read_text()) if points.is_file() else None}
         error = result.mean_reprojection_error
         return {
             "pose_source": "colmap",
@@ -484,7 +502,9 @@ def process(config: ProcessConfig) -> Dict[str, Any]:
         edi_fp = fingerprint("edi", read_fp, asdict(config.edi))
         runner.run("edi", edi_fp, pipeline.edi)
         pose_settings = asdict(config.colmap) if config.poses == "colmap" else [
-            config.num_random_points, config.random_depth_range, config.seed]
+            config.num_random_points, config.random_depth_range, config.seed, config.given_points,
+            asdict(config.triangulation) if config.given_points == "triangulated" else None,
+            asdict(config.colmap) if config.given_points == "triangulated" else None]
         poses_fp = fingerprint("poses", edi_fp, config.poses, pose_settings)
         runner.run("poses", poses_fp, pipeline.poses)
         pipeline.check_registration()
