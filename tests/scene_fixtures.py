@@ -195,7 +195,7 @@ def write_e2nerf_synthetic_scene(
     blurry_files = []
     for v in range(n_views):
         rgba = np.concatenate([_random_rgb(rng, height, width), np.full((height, width, 1), 255, np.uint8)], axis=-1)
-        rgba[0, 0, 3] = 0  # one transparent pixel: composited on white
+        rgba[0, 0, 3] = 0  # one transparent pixel (E2NeRF drops alpha: its stored RGB stays)
         blurry_files.append(_save(root / f"train/r_{2 * v}.png", rgba))
     event_maps = _random_counts(rng, (n_views, n_bins, height, width))
     torch.save(torch.from_numpy(event_maps.astype(np.float64)).reshape(n_views, n_bins, height * width), root / "events.pt")

@@ -20,7 +20,7 @@ from scene_fixtures import (
 from edygs_ns.data.dataparser import EdygsDataParserConfig
 from edygs_ns.data.event_maps import CACHE_DIR_NAME
 from edygs_ns.data.layouts.common import read_rgb_uint8
-from edygs_ns.data.layouts.e2nerf_synthetic import subframe_indices
+from edygs_ns.data.layouts.e2nerf_synthetic import subframe_fractions, subframe_indices
 from edygs_ns.data.layouts.ply import read_ply_points, write_ply_points
 from edygs_ns.events.edi import EdiConfig, edi_from_frame
 
@@ -197,9 +197,14 @@ def test_missing_latent_image_named(tmp_path):
 
 
 def test_subframe_indices():
-    assert subframe_indices(18, 5).tolist() == [1, 5, 9, 13, 17]
-    assert subframe_indices(21, 5).tolist() == [1, 5, 9, 13, 17]
+    # E2NeRF: the blur averages sub-frames 0..17 and bin 0 spans sub-frames 0 -> 5.
+    assert subframe_indices(18, 5).tolist() == [0, 5, 9, 13, 17]
+    assert subframe_indices(21, 5).tolist() == [0, 5, 9, 13, 17]
+    assert subframe_indices(18, 3).tolist() == [0, 9, 17]
+    assert subframe_indices(18, 2).tolist() == [0, 17]
     assert subframe_indices(9, 5).tolist() == [0, 2, 4, 6, 8]
+    np.testing.assert_allclose(subframe_fractions(18, 5), [0, 5 / 17, 9 / 17, 13 / 17, 1])
+    np.testing.assert_allclose(subframe_fractions(9, 5), [0, 0.25, 0.5, 0.75, 1])
     with pytest.raises(ValueError):
         subframe_indices(3, 5)
 
@@ -213,14 +218,19 @@ def test_e2nerf_synthetic(tmp_path):
     assert out.cameras.shape == (n,) and out.metadata["k"] == 5
     times = out.cameras.times[:, 0]
     assert times[0] == 0.0 and times[-1] == 1.0 and torch.all(times[1:] > times[:-1])
-    # latents are sub-frames 1, 5, 9, 13, 17 of each frame's 18 sub-poses
-    expected = scene.c2w.reshape(scene.n_blurry, 18, 4, 4)[:, [1, 5, 9, 13, 17]].reshape(-1, 4, 4)
+    # latents sit at their sub-frames' instants: exposures back to back, sub-frame / 17 inside each
+    slots = np.arange(scene.n_blurry)[:, None] * 5 + np.array([0, 5, 9, 13, 17]) / 17 * 4
+    np.testing.assert_allclose(times.numpy(), slots.reshape(-1) / (5 * scene.n_blurry - 1), atol=1e-6)
+    # latents are sub-frames 0, 5, 9, 13, 17 of each frame's 18 sub-poses
+    expected = scene.c2w.reshape(scene.n_blurry, 18, 4, 4)[:, [0, 5, 9, 13, 17]].reshape(-1, 4, 4)
     np.testing.assert_allclose(_original_poses(out), expected[:, :3], atol=POSE_ATOL)
     assert torch.equal(out.metadata["event_maps"], torch.from_numpy(scene.event_maps))
     assert out.metadata["points3D_xyz"].shape[1] == 3
-    # latents are EDI of the blurry frame composited on white
-    blurry = read_rgb_uint8(scene.blurry_files[1], background=1.0)
-    assert blurry[0, 0].tolist() == [255, 255, 255]
+    # latents are EDI of the blurry frame's stored RGB: E2NeRF's white_bkgd = False drops alpha
+    blurry = read_rgb_uint8(scene.blurry_files[1], background=None)
+    with Image.open(scene.blurry_files[1]) as img:
+        assert img.mode == "RGBA" and np.asarray(img)[0, 0, 3] == 0
+        assert blurry[0, 0].tolist() == np.asarray(img)[0, 0, :3].tolist() != [255, 255, 255]
     latents = edi_from_frame(blurry, scene.event_maps[1], EdiConfig(k=5, theta=0.2))
     for j in range(scene.k):
         stored = np.asarray(Image.open(out.image_filenames[scene.k + j]), dtype=np.float32) / 255.0

@@ -149,7 +149,7 @@ def _original_poses(outputs) -> np.ndarray:
 def test_folder_reads_and_frames_exposures_events_line_up(tmp_path: Path, unit: str, rectified: bool) -> None:
     scene = write_scene(tmp_path / "scene", unit=unit, rectified=rectified)
     assert detect_layout(scene.root) == "evdeblurnerf"
-    folder = read_evdeblurnerf_folder(scene.root)
+    folder = read_evdeblurnerf_folder(scene.root, coordinates="round")  # bilinear: tests/test_author_formats.py
     assert folder.events_unit == unit and folder.events_unit_detected and folder.rectified_events == rectified
     assert folder.blurry == [1, 2, 3, 4] and folder.sharp == [0, 5]
     exposures = folder.exposures()
@@ -316,7 +316,7 @@ def test_rectified_events_rounding_outside_the_image_are_dropped(tmp_path: Path)
         inside = np.flatnonzero((scene.t_us >= scene.starts[0]) & (scene.t_us < scene.ends[0]))
         x[inside[:3]] = [-0.7, W - 0.4, W + 2.0]  # round to -1, W, W + 2: off the undistorted image
         f["x"][:] = x
-    folder = read_evdeblurnerf_folder(scene.root)
+    folder = read_evdeblurnerf_folder(scene.root, coordinates="round")
     with folder.open_events() as source:
         window = source.window(int(scene.starts[0]), int(scene.ends[0]))
     assert len(window) == len(inside) - 3

@@ -311,11 +311,13 @@ def test_form_c_e2nerf_synthetic_given_poses(tmp_path: Path) -> None:
     process(config)
     meta = _check_layout(tmp_path / "scene", 3, 5, 16, 16)
     ours = np.array([f["transform_matrix"] for f in meta["frames"]]).reshape(3, 5, 4, 4)
-    np.testing.assert_allclose(ours, poses[:, [1, 5, 9, 13, 17]])
+    np.testing.assert_allclose(ours, poses[:, [0, 5, 9, 13, 17]])  # E2NeRF: bin 0 spans sub-frames 0 -> 5
     np.testing.assert_array_equal(np.load(tmp_path / "scene" / "event_maps.npy"), bins.reshape(3, 4, 16, 16))
     assert meta["fl_x"] == pytest.approx(0.5 * 16 / np.tan(0.5 * 0.69))
-    blurry = cv2.imread(str(tmp_path / "scene" / "blurry" / "0000.png"))
-    assert (blurry[0, 0] == 255).all()  # transparent pixel composited over white
+    blurry = cv2.imread(str(tmp_path / "scene" / "blurry" / "0000.png"), cv2.IMREAD_UNCHANGED)
+    stored = cv2.imread(str(tmp_path / "e2nerf" / "train" / "r_0.png"), cv2.IMREAD_UNCHANGED)
+    assert stored[0, 0, 3] == 0 and blurry.shape[2] == 3
+    np.testing.assert_array_equal(blurry, stored[..., :3])  # alpha dropped, as E2NeRF (white_bkgd = False)
     # k = 3 merges pairs of E2NeRF's four bins.
     process(replace(config, output=tmp_path / "k3", edi=EdiConfig(k=3)))
     merged = np.load(tmp_path / "k3" / "event_maps.npy")

@@ -86,8 +86,9 @@ class EdygsDataParserConfig(DataParserConfig):
     random_seed: int = 0
     """Seed of those random points."""
     theta: Optional[float] = None
-    """Contrast threshold override; None uses the scene's value (0.2 for E2NeRF and EvDeblurNeRF data;
-    EvDeblurNeRF's own CDAVIS configs use 0.25)."""
+    """Contrast threshold override; None uses the scene's value (a processed scene's transforms.json; the
+    authors' value for a layout read directly: E2NeRF real 0.3, E2NeRF synthetic 0.2, EvDeblurNeRF 0.2
+    Blender / 0.25 CDAVIS)."""
     color_space: Optional[Literal["linear", "srgb"]] = None
     """Pixel encoding override; None uses the scene's value ("linear" for E2NeRF and EvDeblurNeRF data)."""
     edi_clip_max: float = 1.0

@@ -30,8 +30,10 @@ MANIFEST_NAME = "manifest.json"
 KEY_LENGTH = 12
 #: File name of cached event maps inside their cache folder.
 EVENT_MAPS_FILE = "event_maps.npy"
-#: E2NeRF's events.pt is [views, bins, H*W].
+#: E2NeRF's events.pt is [views, bins, H*W] (what its preprocessing writes), or [views, bins, H, W]
+#: (what its README describes).
 EVENTS_PT_NDIM = 3
+EVENTS_PT_GRID_NDIM = 4
 
 
 def _fingerprint(paths: Sequence[Path]) -> List[Dict[str, Any]]:
@@ -132,16 +134,20 @@ def load_event_maps_npy(path: Path, n_blurry: int, k: int, height: int, width: i
 
 
 def _load_events_pt(path: Path, n_views: int, height: int, width: int) -> np.ndarray:
-    """Read E2NeRF's events.pt ([views, bins, H*W] signed counts) as float32 [views, bins, H, W]."""
+    """Read E2NeRF's events.pt ([views, bins, H*W] or [views, bins, H, W] signed counts) as float32 [views, bins, H, W]."""
     try:
         data = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # torch raises several types for corrupt or non-tensor files
         raise ValueError(f"{path}: cannot read as a torch tensor file ({err})") from err
     if not isinstance(data, torch.Tensor):
         raise ValueError(f"{path}: expected one tensor [views, bins, H*W], found {type(data).__name__}")
-    what = f"{n_views} blurry images of {width}x{height} pixels ([views, bins, H*W])"
-    check_event_maps_shape(data.shape, (n_views, None, height * width), path, what)
-    if data.ndim == EVENTS_PT_NDIM and data.shape[1] < 1:
+    if data.ndim == EVENTS_PT_GRID_NDIM:
+        what = f"{n_views} blurry images of {width}x{height} pixels ([views, bins, H, W])"
+        check_event_maps_shape(data.shape, (n_views, None, height, width), path, what)
+    else:
+        what = f"{n_views} blurry images of {width}x{height} pixels ([views, bins, H*W])"
+        check_event_maps_shape(data.shape, (n_views, None, height * width), path, what)
+    if data.shape[1] < 1:
         raise ValueError(f"{path}: event data has shape {tuple(data.shape)}: no event bins")
     return data.to(torch.float32).reshape(n_views, data.shape[1], height, width).numpy()
 
@@ -150,7 +156,8 @@ def cached_events_pt(events_pt: Path, n_views: int, height: int, width: int, sce
     """E2NeRF's events.pt as event maps, converted once and cached as .npy.
 
     Args:
-        events_pt: the file, a float tensor [views, bins, H*W] of signed event counts.
+        events_pt: the file (events.pt, or event.pt as E2NeRF's README names it), a float tensor
+            [views, bins, H*W] or [views, bins, H, W] of signed event counts.
         n_views: number of blurry images the scene has.
         height, width: their size in pixels.
         scene_root: the scene folder (the cache goes under it).
@@ -183,7 +190,7 @@ def cached_events_pt(events_pt: Path, n_views: int, height: int, width: int, sce
 
 
 def cached_rgb_images(
-    scene_root: Path, kind: str, sources: Sequence[Path], names: Sequence[str], background: float
+    scene_root: Path, kind: str, sources: Sequence[Path], names: Sequence[str], background: Optional[float]
 ) -> List[Path]:
     """RGB copies of (possibly RGBA) images, composited once on a grey ``background`` and cached.
 
@@ -192,7 +199,8 @@ def cached_rgb_images(
         kind: cache folder kind (e.g. "train_rgb").
         sources: the original images.
         names: output file name for each source.
-        background: grey level in [0, 1] that transparent pixels are composited on.
+        background: grey level in [0, 1] that transparent pixels are composited on, or None to
+            drop alpha and keep the stored RGB (what a loader without white_bkgd does).
 
     Returns:
         Paths of the cached 8-bit RGB PNGs, one per source.

@@ -39,10 +39,11 @@ def accumulate(events: EventArray, t_start_us: int, t_end_us: int) -> np.ndarray
         t_end_us: window end (exclusive), µs.
 
     Returns:
-        [H, W] float32, the sum of polarities of the events with t_start_us <= t < t_end_us.
+        [H, W] float32, the sum of polarities (times weights, when the events carry them) of
+        the events with t_start_us <= t < t_end_us.
     """
     window = events.time_slice(t_start_us, t_end_us)
-    counts = np.bincount(_pixel_index(window), weights=window.p, minlength=events.height * events.width)
+    counts = np.bincount(_pixel_index(window), weights=window.signed(), minlength=events.height * events.width)
     return counts.astype(np.float32).reshape(events.height, events.width)
 
 
@@ -58,7 +59,8 @@ def bin_events(events: EventArray, boundaries_us: np.ndarray) -> np.ndarray:
         boundaries_us: [B+1] int64 strictly increasing bin edges, µs.
 
     Returns:
-        [B, H, W] float32; entry j sums the polarities with boundaries[j] <= t < boundaries[j+1].
+        [B, H, W] float32; entry j sums the polarities (times weights, when the events carry
+        them) with boundaries[j] <= t < boundaries[j+1].
 
     Raises:
         ValueError: boundaries not one-dimensional, fewer than two, or not strictly increasing.
@@ -73,11 +75,9 @@ def bin_events(events: EventArray, boundaries_us: np.ndarray) -> np.ndarray:
     cuts = np.searchsorted(events.t, edges, side="left")
     first, last = int(cuts[0]), int(cuts[-1])
     bin_offset = np.repeat(np.arange(n_bins, dtype=np.int64) * (h * w), np.diff(cuts))
-    window = EventArray(
-        events.x[first:last], events.y[first:last], events.t[first:last], events.p[first:last], events.sensor_size
-    )
+    window = events.select(slice(first, last))
     flat = _pixel_index(window) + bin_offset
-    counts = np.bincount(flat, weights=window.p, minlength=n_bins * h * w)
+    counts = np.bincount(flat, weights=window.signed(), minlength=n_bins * h * w)
     return counts.astype(np.float32).reshape(n_bins, h, w)
 
 

@@ -142,7 +142,8 @@ def _well_exposed(frame: np.ndarray) -> np.ndarray:
 def _cumulative_counts(events: EventArray, edges: np.ndarray, polarity: int) -> np.ndarray:
     """[len(edges), H, W] float32 count of events of one polarity from edges[0] to each edge."""
     keep = events.p > 0 if polarity > 0 else events.p < 0
-    one = EventArray(events.x[keep], events.y[keep], events.t[keep], np.ones(int(keep.sum()), np.int8), events.sensor_size)
+    kept = events.select(keep)
+    one = EventArray(kept.x, kept.y, kept.t, np.ones(len(kept), np.int8), kept.sensor_size, kept.weight)
     bins = bin_events(one, edges)
     out = np.zeros((len(edges),) + bins.shape[1:], np.float32)
     np.cumsum(bins, axis=0, out=out[1:])
@@ -398,35 +399,57 @@ class ThetaChoice:
 
     Attributes:
         theta: the threshold EDI uses.
-        source: "estimated", "given" (--theta) or "fallback" (FALLBACK_THETA: no estimate).
+        source: "estimated", "given" (--theta) or "fallback" (no estimate: the input layout's
+            default, e.g. E2NeRF real data's 0.3, else FALLBACK_THETA).
         estimate: the fit, or None when there was none.
         reason: why there is no estimate ("" when there is one).
+        fallback_origin: where a fallback Θ comes from ("" for FALLBACK_THETA).
     """
 
     theta: float
     source: Literal["estimated", "given", "fallback"]
     estimate: Optional[ContrastEstimate]
     reason: str = ""
+    fallback_origin: str = ""
 
     def line(self) -> str:
         """The one log line: the estimate, and which Θ EDI uses."""
         found = self.estimate.summary() if self.estimate is not None else f"not estimated ({self.reason})"
         use = {"estimated": "EDI uses the estimate", "given": f"EDI uses --theta {self.theta:g} as given",
-               "fallback": f"EDI uses Θ = {self.theta:g}; pass --theta to set it"}[self.source]
+               "fallback": f"EDI uses Θ = {self.theta:g}"
+               + (f" ({self.fallback_origin})" if self.fallback_origin else "") + "; pass --theta to set it"}[self.source]
         return f"contrast threshold: {found}; {use}"
 
     def to_dict(self) -> Dict[str, Any]:
         return {"theta": self.theta, "source": self.source, "reason": self.reason,
-                "estimate": self.estimate.to_dict() if self.estimate is not None else None}
+                "estimate": self.estimate.to_dict() if self.estimate is not None else None,
+                "fallback_origin": self.fallback_origin}
 
     @classmethod
     def from_dict(cls, data: Dict[str, Any]) -> "ThetaChoice":
         estimate = ContrastEstimate(**data["estimate"]) if data.get("estimate") else None
-        return cls(float(data["theta"]), data["source"], estimate, data.get("reason", ""))
+        return cls(float(data["theta"]), data["source"], estimate, data.get("reason", ""),
+                   data.get("fallback_origin", ""))
 
 
-def choose_theta(estimate: Optional[ContrastEstimate], given: Optional[float], reason: str = "") -> ThetaChoice:
-    """The given Θ if any, else the estimate, else FALLBACK_THETA.
+def choose_theta(
+    estimate: Optional[ContrastEstimate],
+    given: Optional[float],
+    reason: str = "",
+    fallback: Optional[float] = None,
+    fallback_origin: str = "",
+) -> ThetaChoice:
+    """The given Θ if any, else the estimate, else the input layout's default, else FALLBACK_THETA.
+
+    A layout's default (the authors' value, e.g. 0.3 for E2NeRF real data) applies only where
+    neither --theta nor an estimate from the data exists: both describe this capture better.
+
+    Args:
+        estimate: the fit from frames and events, or None.
+        given: --theta, or None.
+        reason: why there is no estimate.
+        fallback: the input layout's default Θ, or None for FALLBACK_THETA.
+        fallback_origin: where ``fallback`` comes from, quoted in the log line.
 
     Raises:
         ValueError: the given Θ is not positive.
@@ -437,4 +460,6 @@ def choose_theta(estimate: Optional[ContrastEstimate], given: Optional[float], r
         return ThetaChoice(float(given), "given", estimate, reason)
     if estimate is not None:
         return ThetaChoice(estimate.theta, "estimated", estimate)
+    if fallback is not None:
+        return ThetaChoice(float(fallback), "fallback", None, reason, fallback_origin)
     return ThetaChoice(FALLBACK_THETA, "fallback", None, reason)

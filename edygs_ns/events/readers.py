@@ -7,7 +7,8 @@ Formats (dispatch on the file suffix):
   attribute, µs) added to t. Sensor size from the attribute ``sensor_size`` = (height, width)
   on the root or the group, or attributes ``height`` and ``width``. t is in µs unless
   :class:`H5EventSource` is told otherwise (EvDeblurNeRF's Blender scenes store ns), and
-  floating-point (rectified) coordinates can be rounded to the nearest pixel there.
+  floating-point (rectified) coordinates can be rounded to the nearest pixel there, or splatted
+  bilinearly over the four pixels around them (weighted entries, :class:`EventArray`).
 - NumPy (``.npz``: arrays x, y, t, p and optionally sensor_size; ``.npy``: a structured array
   with fields x, y, t, p). t in µs. Pickled objects are never loaded (unpickling an untrusted
   file can run code).
@@ -200,6 +201,43 @@ def _first_unsorted(t: np.ndarray, previous: Optional[float]) -> Optional[int]:
     return int(drops[0]) + 1 if len(drops) else None
 
 
+#: Bilinear corners of a sub-pixel event: (dx, dy) offsets from (floor x, floor y).
+BILINEAR_CORNERS = ((0, 0), (1, 0), (0, 1), (1, 1))
+
+
+def splat_bilinear(
+    x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray, sensor_size: SensorSize, source: str
+) -> EventArray:
+    """Sub-pixel events as weighted entries at the four pixels around each (bilinear splatting).
+
+    Pixel centres sit at integer coordinates (as rounding assumes): an event at (3.25, 7.0)
+    gives 0.75 of itself to pixel (3, 7) and 0.25 to (4, 7). Shares that land outside the
+    sensor, and zero shares, are dropped; entries stay in time order (four per event at most).
+
+    Args:
+        x, y: [E] float pixel coordinates (column, row).
+        t: [E] µs; p: [E] polarity ({0, 1} or {-1, +1}).
+        sensor_size: (height, width).
+        source: the file, for messages.
+
+    Returns:
+        EventArray with integer x, y and ``weight`` [E'] float32 in (0, 1].
+    """
+    xf, yf = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    x0, y0 = np.floor(xf), np.floor(yf)
+    fx, fy = xf - x0, yf - y0
+    shares = {(0, 0): (1 - fx) * (1 - fy), (1, 0): fx * (1 - fy), (0, 1): (1 - fx) * fy, (1, 1): fx * fy}
+    xs = np.stack([x0 + dx for dx, _ in BILINEAR_CORNERS], axis=1).reshape(-1)
+    ys = np.stack([y0 + dy for _, dy in BILINEAR_CORNERS], axis=1).reshape(-1)
+    ws = np.stack([shares[c] for c in BILINEAR_CORNERS], axis=1).reshape(-1)
+    height, width = sensor_size
+    keep = (ws > 0) & (xs >= 0) & (xs < width) & (ys >= 0) & (ys < height)
+    repeat = len(BILINEAR_CORNERS)
+    ts, ps = np.repeat(np.asarray(t), repeat)[keep], np.repeat(np.asarray(p), repeat)[keep]
+    events = validate_events(xs[keep], ys[keep], ts, ps, sensor_size, source)
+    return EventArray(events.x, events.y, events.t, events.p, events.sensor_size, ws[keep].astype(np.float32))
+
+
 class _ColumnEventSource(EventSource):
     """Windowed reads from four sorted on-disk columns (HDF5 datasets or memory-mapped fields).
 
@@ -213,9 +251,12 @@ class _ColumnEventSource(EventSource):
         columns: x, y, t, p column objects (sliceable, sorted by t).
         t_offset_us: µs added to every timestamp (after unit conversion).
         time_unit: unit of the stored t (one of :data:`edygs_ns.events.units.TIME_UNITS`).
-        round_coordinates: round x, y to the nearest pixel and drop events that land outside
-            the sensor (rectified, floating-point coordinates); otherwise coordinates must be
+        round_coordinates: accept floating-point (rectified) x, y: round them to the nearest
+            pixel and drop events that land outside the sensor; otherwise coordinates must be
             whole numbers inside the sensor.
+        bilinear: with round_coordinates, splat each event over the four pixels around (x, y)
+            instead (pixel centres at integers; weights (1 - fx)(1 - fy), fx(1 - fy), ...; shares
+            that fall outside the sensor are dropped): :func:`splat_bilinear`.
 
     Raises:
         ValueError: mismatched column lengths, NaN/inf, unsorted timestamps or an unreadable
@@ -230,12 +271,14 @@ class _ColumnEventSource(EventSource):
         t_offset_us: int,
         time_unit: str = "us",
         round_coordinates: bool = False,
+        bilinear: bool = False,
     ) -> None:
         super().__init__(name, sensor_size)
         self._columns = columns
         self._t_offset = int(t_offset_us)
         self._unit = check_time_unit(time_unit, name)
         self._round = bool(round_coordinates)
+        self._bilinear = bool(bilinear) and self._round
         lengths = {k: int(v.shape[0]) for k, v in columns.items()}
         if len(set(lengths.values())) != 1:
             raise ValueError(f"{name}: event fields have mismatched lengths {lengths}")
@@ -301,6 +344,8 @@ class _ColumnEventSource(EventSource):
         t = ticks_to_us(raw["t"], self._unit)  # NaN stays NaN: validate_events names it
         t = t + self._t_offset if t.dtype.kind == "f" else t.astype(np.int64) + self._t_offset
         x, y, p = raw["x"], raw["y"], raw["p"]
+        if self._bilinear:
+            return splat_bilinear(x, y, t, p, self.sensor_size, source)
         if self._round:
             x, y = np.rint(x), np.rint(y)
             height, width = self.sensor_size
@@ -322,7 +367,8 @@ class _ColumnEventSource(EventSource):
 class H5EventSource(_ColumnEventSource):
     """Windowed reads from an HDF5 event file (root datasets or DSEC ``events/`` group).
 
-    ``time_unit`` and ``round_coordinates`` are as for the column source (see its docstring).
+    ``time_unit``, ``round_coordinates`` and ``bilinear`` are as for the column source (see its
+    docstring).
     """
 
     def __init__(
@@ -332,6 +378,7 @@ class H5EventSource(_ColumnEventSource):
         t_offset_us: Optional[int],
         time_unit: str = "us",
         round_coordinates: bool = False,
+        bilinear: bool = False,
     ) -> None:
         import h5py
 
@@ -350,7 +397,7 @@ class H5EventSource(_ColumnEventSource):
                     raise ValueError(f"{path}: dataset {dataset.name!r} must be one-dimensional, got {dataset.shape}")
             super().__init__(
                 str(path), _resolve_sensor_size(file_size, sensor_size, path), columns, t_offset_us,
-                time_unit=time_unit, round_coordinates=round_coordinates,
+                time_unit=time_unit, round_coordinates=round_coordinates, bilinear=bilinear,
             )
         except Exception:
             self._file.close()

@@ -75,13 +75,14 @@ def infer_bit_depth(images: Sequence[np.ndarray], bits: Optional[int] = None) ->
                    "pass --frame-bits to override")
 
 
-def to_rgb8(image: np.ndarray, name: str, alpha_background: str = "white", bits: int = FULL_DEPTH) -> np.ndarray:
+def to_rgb8(image: np.ndarray, name: str, alpha_background: Optional[str] = "white", bits: int = FULL_DEPTH) -> np.ndarray:
     """An image as stored (grey, RGB or RGBA; 8 or 16 bit) as uint8 [H, W, 3] RGB.
 
     Args:
         image: [H, W], [H, W, 1], [H, W, 3] or [H, W, 4] uint8/uint16, channels in RGB(A) order.
         name: the image's origin, for the error message.
-        alpha_background: "white" or "black", what transparent pixels show.
+        alpha_background: "white" or "black", what transparent pixels show, or "none": alpha is
+            dropped and the stored RGB kept (a loader without white_bkgd); None means "white".
         bits: significant bits of uint16 codes (see :func:`infer_bit_depth`); 16-bit alpha is
             always full range.
 
@@ -103,16 +104,18 @@ def to_rgb8(image: np.ndarray, name: str, alpha_background: str = "white", bits:
         return np.repeat(image, RGB_CHANNELS, axis=2)
     if channels == RGB_CHANNELS:
         return np.ascontiguousarray(image)
+    if channels == RGB_CHANNELS + 1 and alpha_background == "none":
+        return np.ascontiguousarray(image[..., :RGB_CHANNELS])
     if channels == RGB_CHANNELS + 1:
         alpha = image[..., 3:].astype(np.float32) / UINT8_MAX
-        background = float(UINT8_MAX) if alpha_background == "white" else 0.0
+        background = 0.0 if alpha_background == "black" else float(UINT8_MAX)
         rgb = image[..., :3].astype(np.float32) * alpha + background * (1.0 - alpha)
         return np.clip(np.round(rgb), 0, UINT8_MAX).astype(np.uint8)
     raise ValueError(f"{name}: unsupported channel count {channels} (expected 1, 3 or 4)")
 
 
 def frames_to_rgb8(
-    images: Sequence[np.ndarray], names: Sequence[str], alpha_background: str = "white", bits: Optional[int] = None
+    images: Sequence[np.ndarray], names: Sequence[str], alpha_background: Optional[str] = "white", bits: Optional[int] = None
 ) -> Tuple[List[np.ndarray], str]:
     """Every frame of a capture as uint8 RGB with one bit depth; returns (frames, note)."""
     depth, note = infer_bit_depth(images, bits)
@@ -121,7 +124,7 @@ def frames_to_rgb8(
 
 
 def read_frames(
-    paths: Sequence[Path], alpha_background: str = "white", bits: Optional[int] = None
+    paths: Sequence[Path], alpha_background: Optional[str] = "white", bits: Optional[int] = None
 ) -> Tuple[List[np.ndarray], str]:
     """Read image files as uint8 RGB frames with one bit depth (see :func:`frames_to_rgb8`)."""
     raws = [read_raw_image(Path(p)) for p in paths]

@@ -12,10 +12,14 @@ Input forms:
 
   - ``--e2nerf DIR``: an E2NeRF scene, synthetic (Blender style: ``transform_train.json``,
     ``train/r_*.png``, ``events.pt``) or real (LLFF style: ``poses_bounds.npy``, ``images/``,
-    ``events.pt``). Its events are already binned (4 bins per frame), so k - 1 must divide 4,
-    and the format stores no timestamps: exposures are placed on a nominal clock
-    (:data:`E2NERF_FRAME_PERIOD_US`, :data:`E2NERF_EXPOSURE_US`), which only sets the
-    normalised latent times.
+    ``events.pt`` or ``event.pt``). Its events are already binned (4 bins per frame), so k - 1
+    must divide 4, and the format stores no timestamps: exposures are placed on a nominal clock
+    (:data:`E2NERF_FRAME_PERIOD_US`; exposures of :data:`E2NERF_REAL_EXPOSURE_US`, E2NeRF's four
+    fixed 25.001 ms bins, and :data:`E2NERF_SYNTHETIC_EXPOSURE_US`, sub-frames 0..17), which only
+    sets the normalised latent times. As E2NeRF reads them: synthetic frames keep their stored
+    RGB (alpha dropped, its ``white_bkgd = False``) and their latents are sub-frames 0, 5, 9,
+    13, 17; real data's EDI uses Θ = 0.3 (:attr:`Capture.default_theta`; the pre-binned events
+    give no Θ estimate).
   - ``--evdeblurnerf DIR``: an EvDeblurNeRF scene (``images_1/`` with ``timestamps.npz``,
     ``poses_bounds.npy``, ``events.h5``; :mod:`edygs_ns.data.layouts.evdeblurnerf` describes
     the format and its sources). Raw events with real exposure times, so any k works. The
@@ -25,8 +29,10 @@ Input forms:
 
 A capture holds the selected frames (frame range/stride applied), downscaled by an integer
 factor together with the event coordinates. Pixel values are stored 8-bit RGB as read: grey
-frames are repeated over three channels, alpha is composited over a white or black background,
-16-bit images are scaled to 8 bits with one bit depth per capture (:mod:`.frames`).
+frames are repeated over three channels, alpha is composited over a white or black background
+or dropped (``--alpha-background``; by default as the input's authors do: dropped for E2NeRF,
+white otherwise), 16-bit images are scaled to 8 bits with one bit depth per capture
+(:mod:`.frames`).
 
 Frames whose exposure the events do not cover are dropped with a notice when they are few, or
 refused with the options that fix it (:mod:`edygs_ns.events.coverage`); the event time unit
@@ -51,7 +57,7 @@ from edygs_ns.events.readers import ArrayEventSource, EventSource, native_time_u
 from edygs_ns.events.types import EventArray
 from edygs_ns.events.units import AUTO_UNIT, US_PER_TICK, detect_time_unit
 from edygs_ns.preprocess.frames import frames_to_rgb8, read_frames, read_raw_image, to_rgb8  # noqa: F401 (re-exported)
-from edygs_ns.data.layouts.common import Intrinsics, interpolate_poses  # noqa: F401 (re-exported)
+from edygs_ns.data.layouts.common import E2NERF_EVENT_FILES, Intrinsics, interpolate_poses  # noqa: F401 (re-exported)
 
 #: Name of the ground-truth folder of a raw capture, and its pose file.
 GT_DIR_NAME = "gt"
@@ -65,9 +71,8 @@ CALIBRATION_ASPECT_TOLERANCE = 1e-2
 #: E2NeRF synthetic scene files.
 E2NERF_TRAIN_JSON = "transform_train.json"
 E2NERF_TRAIN_DIR = "train"
-E2NERF_EVENTS = "events.pt"
 #: E2NeRF's README names its event file event.pt; either name is read (events.pt first).
-E2NERF_EVENT_FILES = (E2NERF_EVENTS, "event.pt")
+E2NERF_EVENTS = E2NERF_EVENT_FILES[0]
 E2NERF_IMAGE_PATTERN = "r_{index}.png"
 #: E2NeRF real (LLFF style) scene files.
 E2NERF_LLFF_POSES = "poses_bounds.npy"
@@ -75,8 +80,10 @@ E2NERF_LLFF_IMAGES = "images"
 E2NERF_LLFF_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".PNG")
 #: E2NeRF stores this many event bins per blurry frame (5 latents).
 E2NERF_BINS = 4
-#: E2NeRF synthetic frames list their sub-frame poses; the latent j of 5 sits at index
-#: E2NERF_FIRST_LATENT_POSE + j * E2NERF_LATENT_POSE_STEP (indices 1, 5, 9, 13, 17).
+#: E2NeRF synthetic frames list their sub-frame poses; the blur averages sub-frames 0..17 and the
+#: bins span 0->5, 5->9, 9->13, 13->17, so latent j of 5 sits at index 0 for j = 0, else
+#: E2NERF_FIRST_LATENT_POSE + j * E2NERF_LATENT_POSE_STEP (indices 0, 5, 9, 13, 17).
+E2NERF_START_POSE = 0
 E2NERF_FIRST_LATENT_POSE = 1
 E2NERF_LATENT_POSE_STEP = 4
 #: LLFF rows: 3x5 pose-and-hwf matrix, then near and far.
@@ -87,7 +94,18 @@ E2NERF_BLENDER_DEPTH_RANGE = (2.0, 6.0)
 #: Nominal clock of E2NeRF frames, which store no timestamps: frame i is exposed over
 #: [i * period, i * period + exposure) µs. Only normalised latent times depend on it.
 E2NERF_FRAME_PERIOD_US = 200_000
-E2NERF_EXPOSURE_US = 100_000
+#: Real data: E2NeRF bins events in fixed 25.001 ms windows from the exposure start, 4 of them:
+#: the latents (bin edges) sit at start + j * 25.001 ms.
+E2NERF_REAL_BIN_US = 25_001
+E2NERF_REAL_EXPOSURE_US = E2NERF_BINS * E2NERF_REAL_BIN_US
+#: Synthetic data: sub-frames 10 ms apart, the blur spans sub-frames 0..17. Its latents (0, 5,
+#: 9, 13, 17) are not evenly spaced; the processed scene spaces them evenly (times only).
+E2NERF_SUBFRAME_US = 10_000
+E2NERF_SYNTHETIC_EXPOSURE_US = 17 * E2NERF_SUBFRAME_US
+#: Default Θ of E2NeRF real data (its EDI.py), used when no --theta is given.
+E2NERF_REAL_THETA = 0.3
+#: E2NeRF reads RGBA frames without compositing (white_bkgd = False): alpha is dropped.
+E2NERF_ALPHA_BACKGROUND = "none"
 #: What a coverage error suggests checking (edygs-process can convert and shift the event clock).
 COVERAGE_HINT = ("check the event clock: --events-time-unit (the unit of the file's timestamps) and "
                  "--events-t-offset-us (µs added to them)")
@@ -142,8 +160,13 @@ class InputConfig:
     """Use every frame_stride-th frame from frame_start."""
     downscale: int = 1
     """Integer factor dividing the frame size and the event coordinates (counts are area-averaged)."""
-    alpha_background: Literal["white", "black"] = "white"
-    """Background that RGBA frames are composited over (E2NeRF's Blender frames use white)."""
+    alpha_background: Optional[Literal["white", "black", "none"]] = None
+    """Background that RGBA frames are composited over; "none" drops alpha and keeps the stored RGB.
+    None (default): as the input's authors read it: "none" for E2NeRF (its white_bkgd = False), else
+    "white"."""
+    evdeblurnerf_coordinates: Literal["bilinear", "round"] = "bilinear"
+    """How an EvDeblurNeRF scene's rectified (floating-point) event coordinates become pixels: splatted
+    bilinearly over the four neighbours (the authors' EDI prior) or rounded to the nearest pixel."""
 
 
 @dataclass
@@ -200,6 +223,9 @@ class Capture:
         gt_dir: ground-truth folder to copy into the processed scene, if any.
         scene_json: the raw capture's scene.json, if any.
         sharp_views: sharp views to write as ground-truth novel views, if the input has them.
+        default_theta: the contrast threshold the input's authors use, for when Θ is neither
+            given (--theta) nor estimated from the data (None: the global fallback).
+        default_theta_origin: where default_theta comes from, for the log line.
         input_paths: files whose content the processing depends on (fingerprints).
         selected: n indices of the selected frames in the input's frame list.
         dropped: indices (input's frame list) of selected frames dropped as not covered by events.
@@ -220,6 +246,8 @@ class Capture:
     gt_dir: Optional[Path] = None
     scene_json: Optional[Path] = None
     sharp_views: Optional[SharpViews] = None
+    default_theta: Optional[float] = None
+    default_theta_origin: str = ""
     input_paths: List[Path] = field(default_factory=list)
     selected: List[int] = field(default_factory=list)
     dropped: List[int] = field(default_factory=list)
@@ -256,7 +284,8 @@ class DownscaledEventSource(EventSource):
         x = events.x // self.factor
         y = events.y // self.factor
         keep = (x < self.sensor_size[1]) & (y < self.sensor_size[0])
-        return EventArray(x[keep], y[keep], events.t[keep], events.p[keep], self.sensor_size)
+        weight = events.weight[keep] if events.weight is not None else None
+        return EventArray(x[keep], y[keep], events.t[keep], events.p[keep], self.sensor_size, weight)
 
     def __len__(self) -> int:
         return len(self.base)
@@ -278,7 +307,7 @@ class DownscaledEventSource(EventSource):
 # Frames
 
 
-def read_image(path: Path, alpha_background: str = "white", bits: Optional[int] = None) -> np.ndarray:
+def read_image(path: Path, alpha_background: Optional[str] = "white", bits: Optional[int] = None) -> np.ndarray:
     """Read one image file as uint8 [H, W, 3] RGB (its bit depth judged alone; see :mod:`.frames`)."""
     return read_frames([Path(path)], alpha_background, bits)[0][0]
 
@@ -544,7 +573,8 @@ def load_aedat4(config: InputConfig, k: int) -> Capture:
         raise ValueError(f"{path}: no APS frames in the recording; edygs-process needs the blurry frames")
     indices = select_indices(len(aps), config, str(path))
     names = [f"{path.name} frame {i}" for i in indices]
-    frames, depth_note = frames_to_rgb8([aps[i].image for i in indices], names, config.alpha_background, config.frame_bits)
+    frames, depth_note = frames_to_rgb8([aps[i].image for i in indices], names, config.alpha_background or "white",
+                                        config.frame_bits)
     notes = [f"{path}: {depth_note}"] if depth_note else []
     exposures = []
     for i in indices:
@@ -571,7 +601,7 @@ def load_exposure_table(config: InputConfig, k: int) -> Capture:
     indices = select_indices(len(all_exposures), config, str(csv_path))
     exposures = [all_exposures[i] for i in indices]
     names = [str(e.file) for e in exposures]
-    frames, depth_note = read_frames([e.file for e in exposures], config.alpha_background, config.frame_bits)
+    frames, depth_note = read_frames([e.file for e in exposures], config.alpha_background or "white", config.frame_bits)
     notes = [f"{csv_path}: {depth_note}"] if depth_note else []
     events = _open_events(Path(config.events), frames[0].shape[:2], config.events_t_offset_us, config.events_time_unit,
                           exposures, notes)
@@ -591,10 +621,10 @@ def load_exposure_table(config: InputConfig, k: int) -> Capture:
     return capture
 
 
-def _e2nerf_exposures(n: int, files: Sequence[Path]) -> List[Exposure]:
-    """Exposures on the nominal E2NeRF clock (the format stores no timestamps)."""
+def _e2nerf_exposures(n: int, files: Sequence[Path], exposure_us: int) -> List[Exposure]:
+    """Exposures of ``exposure_us`` on the nominal E2NeRF clock (the format stores no timestamps)."""
     return [
-        Exposure(frame=i, start_us=i * E2NERF_FRAME_PERIOD_US, end_us=i * E2NERF_FRAME_PERIOD_US + E2NERF_EXPOSURE_US, file=f)
+        Exposure(frame=i, start_us=i * E2NERF_FRAME_PERIOD_US, end_us=i * E2NERF_FRAME_PERIOD_US + exposure_us, file=f)
         for i, f in zip(range(n), files)
     ]
 
@@ -638,14 +668,19 @@ def _e2nerf_bins(path: Path, n_views: int, height: int, width: int, k: int) -> n
 
 
 def _e2nerf_latent_pose_indices(k: int) -> List[int]:
-    """Indices in an E2NeRF sub-pose list of the k latents (1, 5, 9, 13, 17 for k = 5)."""
+    """Indices in an E2NeRF sub-pose list of the k latents: 0, then the bin edges (0, 5, 9, 13, 17 for k = 5)."""
     step = E2NERF_LATENT_POSE_STEP * E2NERF_BINS // (k - 1)
-    return [E2NERF_FIRST_LATENT_POSE + j * step for j in range(k)]
+    return [E2NERF_START_POSE] + [E2NERF_FIRST_LATENT_POSE + j * step for j in range(1, k)]
 
 
-def _read_scene_frames(folder: Path, files: Sequence[Path], config: InputConfig, notes: List[str]) -> List[np.ndarray]:
-    """A scene's frames as uint8 RGB with one bit depth; the depth note (if any) joins ``notes``."""
-    frames, note = read_frames(files, config.alpha_background, config.frame_bits)
+def _read_scene_frames(
+    folder: Path, files: Sequence[Path], config: InputConfig, notes: List[str], alpha_background: str = "white"
+) -> List[np.ndarray]:
+    """A scene's frames as uint8 RGB with one bit depth; the depth note (if any) joins ``notes``.
+
+    ``alpha_background`` is the input's own convention, used unless --alpha-background is given.
+    """
+    frames, note = read_frames(files, config.alpha_background or alpha_background, config.frame_bits)
     if note:
         notes.append(f"{folder}: {note}")
     return frames
@@ -673,7 +708,7 @@ def _load_e2nerf_blender(
         poses.append(matrices[wanted])
     if not files:
         raise FileNotFoundError(f"{folder / E2NERF_TRAIN_DIR}: no training image r_<i>.png for the frames of {meta_path}")
-    frames = _read_scene_frames(folder, files, config, notes)
+    frames = _read_scene_frames(folder, files, config, notes, E2NERF_ALPHA_BACKGROUND)
     h, w = frames[0].shape[:2]
     focal = 0.5 * w / float(np.tan(0.5 * float(meta["camera_angle_x"])))
     return frames, files, np.stack(poses), Intrinsics(w, h, focal, focal, w / 2.0, h / 2.0), E2NERF_BLENDER_DEPTH_RANGE
@@ -696,7 +731,7 @@ def _load_e2nerf_llff(
             f"{folder / E2NERF_LLFF_POSES}: {rows.shape[0]} pose rows for {len(files)} frames; "
             f"expected {latents_per_frame} per frame"
         )
-    frames = _read_scene_frames(folder, files, config, notes)
+    frames = _read_scene_frames(folder, files, config, notes, E2NERF_ALPHA_BACKGROUND)
     mats = rows[:, : LLFF_POSE_SHAPE[0] * LLFF_POSE_SHAPE[1]].reshape(-1, *LLFF_POSE_SHAPE)
     # LLFF rotation columns are (down, right, back); OpenGL wants (right, up, back).
     c2w = np.tile(np.eye(4), (len(mats), 1, 1))
@@ -724,10 +759,11 @@ def load_e2nerf(config: InputConfig, k: int) -> Capture:
     notes: List[str] = []
     if (folder / E2NERF_TRAIN_JSON).is_file():
         loaded = _load_e2nerf_blender(folder, config, k, notes)
-        pose_file = folder / E2NERF_TRAIN_JSON
+        pose_file, exposure_us, theta, theta_origin = folder / E2NERF_TRAIN_JSON, E2NERF_SYNTHETIC_EXPOSURE_US, None, ""
     elif (folder / E2NERF_LLFF_POSES).is_file():
         loaded = _load_e2nerf_llff(folder, config, k, notes)
-        pose_file = folder / E2NERF_LLFF_POSES
+        pose_file, exposure_us = folder / E2NERF_LLFF_POSES, E2NERF_REAL_EXPOSURE_US
+        theta, theta_origin = E2NERF_REAL_THETA, "E2NeRF's real-data EDI value"
     else:
         raise FileNotFoundError(f"{folder}: neither {E2NERF_TRAIN_JSON} (synthetic) nor {E2NERF_LLFF_POSES} (real) found")
     frames, files, c2w, intrinsics, depth_range = loaded
@@ -737,7 +773,7 @@ def load_e2nerf(config: InputConfig, k: int) -> Capture:
     events_file = e2nerf_events_file(folder)
     bins = _e2nerf_bins(events_file, len(frames), h, w, k)
     indices = select_indices(len(frames), config, str(folder))
-    all_exposures = _e2nerf_exposures(len(frames), files)
+    all_exposures = _e2nerf_exposures(len(frames), files, exposure_us)
     exposures = [all_exposures[i] for i in indices]
     names = [str(files[i]) for i in indices]
     capture = _finish_capture(
@@ -745,6 +781,7 @@ def load_e2nerf(config: InputConfig, k: int) -> Capture:
     )
     capture.binned_events = downscale_counts(bins[indices], config.downscale)
     capture.event_count_scale = 1.0  # area averaging is already applied to the stored bins
+    capture.default_theta, capture.default_theta_origin = theta, theta_origin
     capture.given_poses = GivenPoses(
         c2w=c2w[indices],
         intrinsics=intrinsics.resized(capture.width, capture.height),
@@ -765,7 +802,9 @@ def load_evdeblurnerf(config: InputConfig, k: int) -> Capture:
             raise ValueError(f"{config.evdeblurnerf}: EvDeblurNeRF events are in us or ns, got --events-time-unit "
                              f"{config.events_time_unit}")
         unit = config.events_time_unit
-    scene = read_evdeblurnerf_folder(Path(config.evdeblurnerf), unit, config.evdeblurnerf_timestamps_unit)
+    scene = read_evdeblurnerf_folder(
+        Path(config.evdeblurnerf), unit, config.evdeblurnerf_timestamps_unit, config.evdeblurnerf_coordinates
+    )
     indices = select_indices(len(scene.blurry), config, str(scene.root))
     exposures = scene.exposures(indices)
     names = [str(e.file) for e in exposures]
@@ -795,6 +834,7 @@ def load_evdeblurnerf(config: InputConfig, k: int) -> Capture:
         events.close()
         raise
     capture.events = DownscaledEventSource(events, config.downscale) if config.downscale > 1 else events
+    capture.default_theta, capture.default_theta_origin = scene.default_theta, scene.default_theta_origin
     capture.given_poses = GivenPoses(
         c2w=scene.latent_poses(exposures, k),
         intrinsics=scene.intrinsics.resized(capture.width, capture.height),

@@ -319,7 +319,8 @@ class Pipeline:
                 total_events += float(np.abs(bins).sum())
                 advance()
         reason = "the input's events are pre-binned per exposure" if capture.binned_events is not None else contrast.reason()
-        choice = choose_theta(contrast.estimate(), self.config.edi.theta, reason)
+        choice = choose_theta(contrast.estimate(), self.config.edi.theta, reason, capture.default_theta,
+                              capture.default_theta_origin)
         CONSOLE.print(choice.line())
         (self.work / CONTRAST_JSON).write_text(json.dumps(choice.to_dict(), indent=2))
         edi_config = replace(self.config.edi, theta=choice.theta)

@@ -15,8 +15,8 @@ from edygs_ns.data.layouts.processed import DEFAULT_EVENT_MAPS_FILE, TRANSFORMS_
 #: What each layout needs, quoted when a folder matches none.
 LAYOUT_REQUIREMENTS: Dict[str, str] = {
     "processed": "transforms.json + event_maps.npy (written by edygs-process)",
-    "e2nerf-synthetic": "transform_train.json + events.pt + train/r_<i>.png",
-    "e2nerf-real": "poses_bounds.npy + events.pt + images/",
+    "e2nerf-synthetic": "transform_train.json + events.pt (or event.pt) + train/r_<i>.png",
+    "e2nerf-real": "poses_bounds.npy + events.pt (or event.pt) + images/",
     "evdeblurnerf": "poses_bounds.npy + events.h5 + images_1/ with timestamps.npz",
 }
 #: Files that mark a raw capture, which must go through edygs-process first.
@@ -87,7 +87,9 @@ def read_scene(
     Args:
         root: the scene folder.
         layout: "auto" (detect) or one of LAYOUT_NAMES.
-        theta: contrast threshold override (None: the scene's own, or 0.2 for E2NeRF data).
+        theta: contrast threshold override (None: the processed scene's own, i.e. estimated or
+            given at edygs-process; for a layout read directly, the authors' value for it:
+            0.3 E2NeRF real, 0.2 E2NeRF synthetic, 0.2 / 0.25 EvDeblurNeRF Blender / CDAVIS).
         color_space: pixel encoding override (None: the scene's own, or "linear").
         clip_max: EDI clip for layouts whose latents are computed here.
         k: latents per blurry frame for layouts that leave it open (EvDeblurNeRF; None: its default).

@@ -281,6 +281,37 @@ def uniform_latent_times(n_blurry: int, k: int) -> np.ndarray:
     return slots / max(n_blurry * k - 1, 1)
 
 
+def latent_times_from_fractions(fractions: np.ndarray) -> np.ndarray:
+    """Normalised times [n * k] of latents placed at fractions of their exposures.
+
+    As :func:`uniform_latent_times` (equally long exposures, back to back, one bin between
+    them), but latent j of exposure b sits at fractions[b, j] of its exposure: slot
+    b * k + fractions[b, j] * (k - 1). Fractions j / (k - 1) give uniform_latent_times.
+
+    Args:
+        fractions: [n, k] in [0, 1], increasing along k, first 0 and last 1.
+
+    Returns:
+        [n * k] float64 in [0, 1].
+    """
+    fractions = np.asarray(fractions, dtype=np.float64)
+    n, k = fractions.shape
+    slots = np.arange(n, dtype=np.float64)[:, None] * k + fractions * (k - 1)
+    return (slots / max(n * k - 1, 1)).reshape(-1)
+
+
+#: E2NeRF's event file: its preprocessing writes events.pt, its README names event.pt.
+E2NERF_EVENT_FILES = ("events.pt", "event.pt")
+
+
+def find_e2nerf_events(root: Path) -> Optional[Path]:
+    """The E2NeRF event file of a scene folder (events.pt, else event.pt), or None."""
+    for name in E2NERF_EVENT_FILES:
+        if (Path(root) / name).is_file():
+            return Path(root) / name
+    return None
+
+
 def nearest_times(query_c2w: np.ndarray, latent_c2w: np.ndarray, latent_times: np.ndarray) -> np.ndarray:
     """For each query pose, the time of the latent whose camera centre is nearest.
 
@@ -306,25 +337,45 @@ def latent_grid(n_blurry: int, k: int) -> Tuple[np.ndarray, np.ndarray]:
     return blurry, latent
 
 
-def interpolate_poses(times: np.ndarray, c2w: np.ndarray, query: np.ndarray) -> np.ndarray:
-    """Poses at query times: rotations slerped, centres linear; clamped outside the known times.
+#: Fewest known instants for cubic interpolation of translations (a not-a-knot cubic spline,
+#: as scipy's interp1d(kind="cubic")); with fewer, translations are interpolated linearly.
+CUBIC_MIN_POINTS = 4
+
+
+def interpolate_poses(
+    times: np.ndarray, c2w: np.ndarray, query: np.ndarray, translation: str = "linear"
+) -> np.ndarray:
+    """Poses at query times: rotations slerped, centres linear or cubic; clamped outside the known times.
 
     Args:
         times: [M] strictly increasing µs.
         c2w: [M, 4, 4] poses at those times.
         query: [Q] µs.
+        translation: "linear" (piecewise linear centres) or "cubic" (a not-a-knot cubic spline
+            through the centres, what scipy's ``interp1d(kind="cubic")`` gives, as EvDeblurNeRF
+            interpolates its camera path; linear when fewer than CUBIC_MIN_POINTS are known).
 
     Returns:
         [Q, 4, 4] float64.
+
+    Raises:
+        ValueError: an unknown ``translation``.
     """
+    from scipy.interpolate import CubicSpline
     from scipy.spatial.transform import Rotation, Slerp
 
-    q = np.clip(np.asarray(query, dtype=np.float64), times[0], times[-1])
+    if translation not in ("linear", "cubic"):
+        raise ValueError(f"interpolate_poses: translation must be 'linear' or 'cubic', got {translation!r}")
+    known = np.asarray(times, dtype=np.float64)
+    q = np.clip(np.asarray(query, dtype=np.float64), known[0], known[-1])
     out = np.tile(np.eye(4), (len(q), 1, 1))
-    if len(times) == 1:
+    if len(known) == 1:
         out[:] = c2w[0]
         return out
-    out[:, :3, :3] = Slerp(np.asarray(times, dtype=np.float64), Rotation.from_matrix(c2w[:, :3, :3]))(q).as_matrix()
-    for axis in range(3):
-        out[:, axis, 3] = np.interp(q, times, c2w[:, axis, 3])
+    out[:, :3, :3] = Slerp(known, Rotation.from_matrix(c2w[:, :3, :3]))(q).as_matrix()
+    if translation == "cubic" and len(known) >= CUBIC_MIN_POINTS:
+        out[:, :3, 3] = CubicSpline(known, c2w[:, :3, 3], axis=0, bc_type="not-a-knot")(q)
+    else:
+        for axis in range(3):
+            out[:, axis, 3] = np.interp(q, known, c2w[:, axis, 3])
     return out

@@ -33,17 +33,24 @@ What the authors' code establishes (repo uzh-rpg/EvDeblurNeRF, files named):
 - ``events.h5`` (``utils/events.py``, ``load_events_h5``): root datasets x, y, t, p; no sensor
   size (the image size is used). Polarity in {0, 1} or {-1, +1} (``load_event_data`` maps 0
   to -1). Coordinates are integers, or floats after rectification, and then ``ev_map.npz`` is
-  present (``load_event_data`` asserts both ways). Float coordinates are assigned to pixel
-  (round(y), round(x)) there, and so here; rectified events that round outside the image are
-  dropped (the undistortion moves some corner pixels out of the frame).
+  present (``load_event_data`` asserts both ways). For the EDI prior the authors splat float
+  coordinates bilinearly over the four neighbouring pixels; so do we, for the event bins that
+  feed EDI and the event loss alike (``coordinates="bilinear"``, the default; shares outside the
+  image are dropped, the undistortion moves some corner pixels out of the frame). Their event
+  loss assigns an event to pixel (round(y), round(x)); ``coordinates="round"`` does that for
+  every use (events that round outside the image are dropped).
 - CDAVIS events come from a colour DAVIS: ``load_event_data`` gives each event pixel one
   colour of an RGGB Bayer pattern (R at even row and column, B at odd row and column). EDyGS
   models grey events, so each pixel's events are used as a grey log-intensity change (an
   approximation; see docs/layouts.md).
-- Contrast thresholds in the configs: 0.2 (Blender), 0.25 (CDAVIS). Default theta here: 0.2.
-- Poses between known instants: the authors slerp ``all_poses_bounds.npy`` over
-  ``all_timestamps.npy`` (clamped to their range). We do the same at every latent instant;
-  without those files the per-image poses at ``timestamps`` are the known instants.
+- Contrast thresholds in the configs: 0.2 (Blender), 0.25 (CDAVIS). Default theta here: the
+  same, by scene kind (:func:`default_theta`: 0.25 when ``ev_map.npz`` marks a CDAVIS scene).
+- Poses between known instants: the authors slerp the rotations of ``all_poses_bounds.npy``
+  over ``all_timestamps.npy`` and interpolate the translations with a cubic ``interp1d``
+  (clamped to their range). We do the same at every latent instant (rotations slerped,
+  centres on a not-a-knot cubic spline, :func:`~edygs_ns.data.layouts.common.interpolate_poses`;
+  linear with fewer than 4 known instants); without those files the per-image poses at
+  ``timestamps`` are the known instants.
 
 Exposure of blurry image i: [timestamps_start[i], timestamps_end[i]] (rounded to µs). Latent
 times are evenly spaced over it (docs/layouts.md); normalised times span the first to the last
@@ -94,8 +101,16 @@ LLFF_ROW_LENGTH = 17
 LLFF_ROWS, LLFF_COLS = 3, 5
 #: Units an event or timestamp file may use.
 TIME_UNITS = tuple(TICKS_PER_US)
-#: Defaults for training on such a scene.
+#: Defaults for training on such a scene. Contrast threshold of the authors' Blender configs,
+#: and of their CDAVIS configs (scenes with rectified events, ev_map.npz).
 DEFAULT_THETA = 0.2
+DEFAULT_THETA_CDAVIS = 0.25
+#: How rectified (floating-point) event coordinates become pixels: "bilinear" (the authors' EDI
+#: prior; default) or "round" (nearest pixel, their event loss).
+COORDINATE_MODES = ("bilinear", "round")
+DEFAULT_COORDINATES = "bilinear"
+#: Camera-path translations are interpolated as the authors do (cubic interp1d).
+PATH_TRANSLATION = "cubic"
 DEFAULT_COLOR_SPACE = "linear"
 DEFAULT_K = 5
 #: Layout name in SceneRecord.layout and the dataparser's ``layout`` option.
@@ -128,7 +143,8 @@ class EvDeblurNeRFScene:
         events_path: events.h5.
         events_unit: "us" or "ns", the unit of events.h5's t.
         events_unit_detected: True when events_unit was detected rather than given.
-        rectified_events: True when ev_map.npz is present (float coordinates, rounded).
+        rectified_events: True when ev_map.npz is present (float coordinates; a CDAVIS scene).
+        coordinates: how float coordinates become pixels, "bilinear" or "round" (COORDINATE_MODES).
     """
 
     root: Path
@@ -146,6 +162,18 @@ class EvDeblurNeRFScene:
     events_unit: str
     events_unit_detected: bool
     rectified_events: bool
+    coordinates: str = DEFAULT_COORDINATES
+
+    @property
+    def default_theta(self) -> float:
+        """The authors' contrast threshold for this kind of scene (0.25 CDAVIS, 0.2 Blender)."""
+        return DEFAULT_THETA_CDAVIS if self.rectified_events else DEFAULT_THETA
+
+    @property
+    def default_theta_origin(self) -> str:
+        """Where default_theta comes from, for messages."""
+        kind = "CDAVIS" if self.rectified_events else "Blender"
+        return f"EvDeblurNeRF's {kind} configs"
 
     @property
     def blurry(self) -> List[int]:
@@ -168,8 +196,9 @@ class EvDeblurNeRFScene:
         ]
 
     def poses_at(self, times_us: np.ndarray) -> np.ndarray:
-        """[Q, 4, 4] poses on the camera path at the given µs (slerp; clamped to the path's range)."""
-        return interpolate_poses(self.path_times_us, self.path_c2w, np.asarray(times_us))
+        """[Q, 4, 4] poses on the camera path at the given µs (rotations slerped, centres on a cubic
+        spline as the authors interpolate; clamped to the path's range)."""
+        return interpolate_poses(self.path_times_us, self.path_c2w, np.asarray(times_us), translation=PATH_TRANSLATION)
 
     def latent_poses(self, exposures: Sequence[Exposure], k: int) -> np.ndarray:
         """[n, k, 4, 4] pose of every latent instant of the exposures."""
@@ -184,6 +213,7 @@ class EvDeblurNeRFScene:
             None,
             time_unit=self.events_unit,
             round_coordinates=self.rectified_events,
+            bilinear=self.rectified_events and self.coordinates == "bilinear",
         )
 
     def source_files(self) -> List[Path]:
@@ -287,13 +317,17 @@ def detect_events_unit(events_span: float, reference_span_us: float) -> str:
     return min(TIME_UNITS, key=lambda u: distance[u])
 
 
-def read_evdeblurnerf_folder(root: Path, events_unit: str = "auto", timestamps_unit: str = "us") -> EvDeblurNeRFScene:
+def read_evdeblurnerf_folder(
+    root: Path, events_unit: str = "auto", timestamps_unit: str = "us", coordinates: str = DEFAULT_COORDINATES
+) -> EvDeblurNeRFScene:
     """Read and check an EvDeblurNeRF scene folder (no pixels read, no events binned).
 
     Args:
         root: the scene folder.
         events_unit: unit of events.h5's t: "us", "ns", or "auto" (detected from the spans).
         timestamps_unit: unit of timestamps.npz and all_timestamps.npy ("us", the authors' default).
+        coordinates: rectified (float) event coordinates are splatted "bilinear" (default, as the
+            authors' EDI prior) or rounded ("round"); integer coordinates are unaffected.
 
     Raises:
         FileNotFoundError: the folder or a required file is missing (named).
@@ -306,6 +340,8 @@ def read_evdeblurnerf_folder(root: Path, events_unit: str = "auto", timestamps_u
         raise ValueError(f"events unit must be 'auto' or one of {TIME_UNITS}, got {events_unit!r}")
     if timestamps_unit not in TIME_UNITS:
         raise ValueError(f"timestamps unit must be one of {TIME_UNITS}, got {timestamps_unit!r}")
+    if coordinates not in COORDINATE_MODES:
+        raise ValueError(f"event coordinates mode must be one of {COORDINATE_MODES}, got {coordinates!r}")
     folder = root / IMAGES_FOLDER
     images = sorted(p for p in folder.iterdir() if p.suffix in IMAGE_SUFFIXES) if folder.is_dir() else []
     if not images:
@@ -364,6 +400,7 @@ def read_evdeblurnerf_folder(root: Path, events_unit: str = "auto", timestamps_u
         events_unit=events_unit,
         events_unit_detected=detected,
         rectified_events=rectified,
+        coordinates=coordinates,
     )
 
 
@@ -378,7 +415,7 @@ def _cached_event_maps(scene: EvDeblurNeRFScene, exposures: List[Exposure], k: i
     from edygs_ns.data.event_maps import EVENT_MAPS_FILE, CacheFolder, check_event_maps_shape
 
     params = {"format": "evdeblurnerf-events.h5", "k": k, "events_unit": scene.events_unit,
-              "rectified": scene.rectified_events, "exposures": [[e.start_us, e.end_us] for e in exposures]}
+              "rectified": scene.rectified_events, "coordinates": scene.coordinates, "exposures": [[e.start_us, e.end_us] for e in exposures]}
     cache = CacheFolder(scene.root, "event_maps", params, [scene.events_path])
     cached = cache.path / EVENT_MAPS_FILE
     expected = (len(exposures), k - 1, scene.intrinsics.height, scene.intrinsics.width)
@@ -403,15 +440,18 @@ def read_evdeblurnerf(
     color_space: Optional[str] = None,
     clip_max: float = 1.0,
     k: Optional[int] = None,
+    coordinates: str = DEFAULT_COORDINATES,
 ) -> SceneRecord:
     """Read an EvDeblurNeRF scene for training: bins its events and computes EDI latents once (cached).
 
     Args:
         root: the scene folder.
-        theta: contrast threshold for EDI (default DEFAULT_THETA).
+        theta: contrast threshold for EDI (default: the authors' for the scene kind, 0.25 for a
+            CDAVIS scene with ev_map.npz, else 0.2).
         color_space: encoding of the pixels (default "linear").
         clip_max: EDI latents are clipped to [0, clip_max] in linear intensity.
         k: latents per blurry frame (default DEFAULT_K).
+        coordinates: "bilinear" (default) or "round", for rectified event coordinates.
 
     Raises:
         FileNotFoundError / ValueError: see :func:`read_evdeblurnerf_folder`; also events that
@@ -419,7 +459,7 @@ def read_evdeblurnerf(
     """
     from edygs_ns.data.event_maps import cached_edi_latents
 
-    scene = read_evdeblurnerf_folder(root)
+    scene = read_evdeblurnerf_folder(root, coordinates=coordinates)
     k = int(k if k is not None else DEFAULT_K)
     if k < 2:
         raise ValueError(f"k must be at least 2 (one event bin), got {k}")
@@ -427,7 +467,7 @@ def read_evdeblurnerf(
     event_maps = _cached_event_maps(scene, exposures, k)
     edi = EdiConfig(
         k=k,
-        theta=float(theta if theta is not None else DEFAULT_THETA),
+        theta=float(theta if theta is not None else scene.default_theta),
         color_space=color_space or DEFAULT_COLOR_SPACE,  # type: ignore[arg-type]
         clip_max=clip_max,
     )
@@ -463,7 +503,9 @@ def read_evdeblurnerf(
         pose_source="given",
         novel=novel,
         notes={"events_unit": scene.events_unit, "events_unit_detected": scene.events_unit_detected,
-               "camera_path": scene.path_source, "rectified_events": scene.rectified_events},
+               "camera_path": scene.path_source, "rectified_events": scene.rectified_events,
+               "event_coordinates": scene.coordinates if scene.rectified_events else "integer",
+               "theta_source": "given" if theta is not None else scene.default_theta_origin},
     )
     record.check()
     return record
