@@ -134,6 +134,15 @@ def test_evdeblurnerf_rectified_events_are_splatted_bilinearly_or_rounded(tmp_pa
         capture.close()
 
 
+def test_process_splats_rectified_evdeblurnerf_events_bilinearly(tmp_path: Path) -> None:
+    scene = write_scene(tmp_path / "cdavis", unit="us", rectified=True)
+    config = ProcessConfig(output=tmp_path / "out", inputs=InputConfig(evdeblurnerf=scene.root), edi=_edi(k=3),
+                           poses="given", given_points="random", num_random_points=20)
+    process(config)
+    expected = _expected_maps(scene.root, scene.starts, scene.ends, 3, bilinear=True)
+    np.testing.assert_allclose(np.load(tmp_path / "out" / "event_maps.npy"), expected, atol=1e-5)
+
+
 def test_evdeblurnerf_blender_scene_theta_and_integer_events(tmp_path: Path) -> None:
     scene = write_scene(tmp_path / "blender", unit="ns")
     record = read_evdeblurnerf(scene.root, k=3)

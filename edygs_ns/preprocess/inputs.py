@@ -58,6 +58,8 @@ from edygs_ns.events.types import EventArray
 from edygs_ns.events.units import AUTO_UNIT, US_PER_TICK, detect_time_unit
 from edygs_ns.preprocess.frames import frames_to_rgb8, read_frames, read_raw_image, to_rgb8  # noqa: F401 (re-exported)
 from edygs_ns.data.layouts.common import E2NERF_EVENT_FILES, Intrinsics, interpolate_poses  # noqa: F401 (re-exported)
+from edygs_ns.data.layouts.e2nerf_real import DEFAULT_THETA as E2NERF_REAL_DEFAULT_THETA
+from edygs_ns.data.layouts.e2nerf_real import E2NERF_BIN_US
 
 #: Name of the ground-truth folder of a raw capture, and its pose file.
 GT_DIR_NAME = "gt"
@@ -96,14 +98,14 @@ E2NERF_BLENDER_DEPTH_RANGE = (2.0, 6.0)
 E2NERF_FRAME_PERIOD_US = 200_000
 #: Real data: E2NeRF bins events in fixed 25.001 ms windows from the exposure start, 4 of them:
 #: the latents (bin edges) sit at start + j * 25.001 ms.
-E2NERF_REAL_BIN_US = 25_001
+E2NERF_REAL_BIN_US = E2NERF_BIN_US
 E2NERF_REAL_EXPOSURE_US = E2NERF_BINS * E2NERF_REAL_BIN_US
 #: Synthetic data: sub-frames 10 ms apart, the blur spans sub-frames 0..17. Its latents (0, 5,
 #: 9, 13, 17) are not evenly spaced; the processed scene spaces them evenly (times only).
 E2NERF_SUBFRAME_US = 10_000
 E2NERF_SYNTHETIC_EXPOSURE_US = 17 * E2NERF_SUBFRAME_US
 #: Default Θ of E2NeRF real data (its EDI.py), used when no --theta is given.
-E2NERF_REAL_THETA = 0.3
+E2NERF_REAL_THETA = E2NERF_REAL_DEFAULT_THETA
 #: E2NeRF reads RGBA frames without compositing (white_bkgd = False): alpha is dropped.
 E2NERF_ALPHA_BACKGROUND = "none"
 #: What a coverage error suggests checking (edygs-process can convert and shift the event clock).
