@@ -82,7 +82,8 @@ def to_rgb8(image: np.ndarray, name: str, alpha_background: Optional[str] = "whi
         image: [H, W], [H, W, 1], [H, W, 3] or [H, W, 4] uint8/uint16, channels in RGB(A) order.
         name: the image's origin, for the error message.
         alpha_background: "white" or "black", what transparent pixels show, or "none": alpha is
-            dropped and the stored RGB kept (a loader without white_bkgd); None means "white".
+            dropped and the stored RGB kept (a loader without white_bkgd); None or "auto" mean
+            "white".
         bits: significant bits of uint16 codes (see :func:`infer_bit_depth`); 16-bit alpha is
             always full range.
 

@@ -162,10 +162,9 @@ class InputConfig:
     """Use every frame_stride-th frame from frame_start."""
     downscale: int = 1
     """Integer factor dividing the frame size and the event coordinates (counts are area-averaged)."""
-    alpha_background: Optional[Literal["white", "black", "none"]] = None
+    alpha_background: Literal["auto", "white", "black", "none"] = "auto"
     """Background that RGBA frames are composited over; "none" drops alpha and keeps the stored RGB.
-    None (default): as the input's authors read it: "none" for E2NeRF (its white_bkgd = False), else
-    "white"."""
+    "auto": as the input's authors read it: "none" for E2NeRF (its white_bkgd = False), else "white"."""
     evdeblurnerf_coordinates: Literal["bilinear", "round"] = "bilinear"
     """How an EvDeblurNeRF scene's rectified (floating-point) event coordinates become pixels: splatted
     bilinearly over the four neighbours (the authors' EDI prior) or rounded to the nearest pixel."""
@@ -307,6 +306,12 @@ class DownscaledEventSource(EventSource):
 
 # ----------------------------------------------------------------------------------------------
 # Frames
+
+
+def resolve_alpha_background(config: InputConfig, own: str = "white") -> str:
+    """--alpha-background, or the input's own convention ``own`` when it is "auto"."""
+    return own if config.alpha_background == "auto" else config.alpha_background
+
 
 
 def read_image(path: Path, alpha_background: Optional[str] = "white", bits: Optional[int] = None) -> np.ndarray:
@@ -575,7 +580,7 @@ def load_aedat4(config: InputConfig, k: int) -> Capture:
         raise ValueError(f"{path}: no APS frames in the recording; edygs-process needs the blurry frames")
     indices = select_indices(len(aps), config, str(path))
     names = [f"{path.name} frame {i}" for i in indices]
-    frames, depth_note = frames_to_rgb8([aps[i].image for i in indices], names, config.alpha_background or "white",
+    frames, depth_note = frames_to_rgb8([aps[i].image for i in indices], names, resolve_alpha_background(config),
                                         config.frame_bits)
     notes = [f"{path}: {depth_note}"] if depth_note else []
     exposures = []
@@ -603,7 +608,7 @@ def load_exposure_table(config: InputConfig, k: int) -> Capture:
     indices = select_indices(len(all_exposures), config, str(csv_path))
     exposures = [all_exposures[i] for i in indices]
     names = [str(e.file) for e in exposures]
-    frames, depth_note = read_frames([e.file for e in exposures], config.alpha_background or "white", config.frame_bits)
+    frames, depth_note = read_frames([e.file for e in exposures], resolve_alpha_background(config), config.frame_bits)
     notes = [f"{csv_path}: {depth_note}"] if depth_note else []
     events = _open_events(Path(config.events), frames[0].shape[:2], config.events_t_offset_us, config.events_time_unit,
                           exposures, notes)
@@ -676,13 +681,13 @@ def _e2nerf_latent_pose_indices(k: int) -> List[int]:
 
 
 def _read_scene_frames(
-    folder: Path, files: Sequence[Path], config: InputConfig, notes: List[str], alpha_background: str = "white"
+    folder: Path, files: Sequence[Path], config: InputConfig, notes: List[str], own_background: str = "white"
 ) -> List[np.ndarray]:
     """A scene's frames as uint8 RGB with one bit depth; the depth note (if any) joins ``notes``.
 
-    ``alpha_background`` is the input's own convention, used unless --alpha-background is given.
+    ``own_background`` is the input's own convention, used unless --alpha-background is given.
     """
-    frames, note = read_frames(files, config.alpha_background or alpha_background, config.frame_bits)
+    frames, note = read_frames(files, resolve_alpha_background(config, own_background), config.frame_bits)
     if note:
         notes.append(f"{folder}: {note}")
     return frames
