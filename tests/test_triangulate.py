@@ -10,10 +10,12 @@ import numpy as np
 import pytest
 
 from edygs_ns.data.dataparser import EdygsDataParserConfig
+from edygs_ns.data.layouts.common import Intrinsics
 from edygs_ns.events.edi import EdiConfig
 from edygs_ns.preprocess.inputs import InputConfig
-from edygs_ns.preprocess.triangulate import TriangulationConfig
-from edygs_ns.preprocess.writer import read_ply
+from edygs_ns.preprocess.colmap import ColmapConfig
+from edygs_ns.preprocess.triangulate import TriangulationConfig, TriangulationError, triangulate_at_poses
+from edygs_ns.preprocess.writer import read_ply, write_rgb_png
 from edygs_ns.scripts.process import ProcessConfig, process
 from edygs_ns.scripts.synth import SynthConfig, build_world, write_synthetic_scene
 
@@ -111,3 +113,14 @@ def test_given_points_random_keeps_the_random_points(synth: SynthConfig, tmp_pat
     assert report["initial_points"] == {"source": "random", "num_points": RANDOM_POINTS, "fallback_reason": None,
                                         "triangulation": None}
     assert not (tmp_path / "scene" / ".edygs_work" / "triangulation").exists()
+
+
+def test_featureless_latents_raise_a_one_line_reason(tmp_path: Path) -> None:
+    names = [f"{i:04d}_0.png" for i in range(4)]
+    for name in names:
+        write_rgb_png(tmp_path / name, np.full((24, 32, 3), 128, np.uint8))
+    c2w = np.repeat(np.eye(4)[None], len(names), axis=0)
+    c2w[:, 0, 3] = np.arange(len(names)) * 0.1
+    with pytest.raises(TriangulationError, match=r"^no pair of latents matched \(0 SIFT features over 4 latents\)$"):
+        triangulate_at_poses(tmp_path, names, c2w, Intrinsics(32, 24, 30.0, 30.0, 16.0, 12.0), tmp_path / "work",
+                             ColmapConfig(), TriangulationConfig())

@@ -99,6 +99,12 @@ class InitialPoints:
                 "triangulation": self.triangulated}
 
 
+def _last_line(err: BaseException) -> str:
+    """The last line of an exception's message (COLMAP's carry a check trace before it), or its type."""
+    lines = str(err).strip().splitlines()
+    return lines[-1] if lines else type(err).__name__
+
+
 def _rigid(w2c: np.ndarray) -> Any:
     import pycolmap
 
@@ -131,12 +137,13 @@ def _posed_reconstruction(database: Path, w2c: Dict[str, np.ndarray]) -> Any:
 
 
 def _verified_pairs(database: Path) -> Tuple[int, int]:
-    """(latent pairs with verified matches, SIFT features over all latents) in the database."""
+    """(latent pairs with inlier matches, SIFT features over all latents) in the database."""
     import pycolmap
 
     db = pycolmap.Database.open(str(database))
     try:
-        return int(db.num_verified_image_pairs()), int(db.num_keypoints())
+        _, geometries = db.read_two_view_geometries()
+        return sum(1 for g in geometries if len(g.inlier_matches) > 0), int(db.num_keypoints())
     finally:
         db.close()
 
@@ -165,7 +172,7 @@ def triangulate_at_poses(
         The points, in the world frame of ``c2w``.
 
     Raises:
-        TriangulationError: no latent pair matched, too few points, or COLMAP moved a pose.
+        TriangulationError: COLMAP failed, no latent pair matched, too few points, or COLMAP moved a pose.
     """
     import pycolmap
 
@@ -179,8 +186,11 @@ def triangulate_at_poses(
     database = work_dir / DATABASE_NAME
     params = ",".join(f"{v:.10g}" for v in (intrinsics.fl_x, intrinsics.fl_y, intrinsics.cx, intrinsics.cy))
     features = replace(colmap, camera_model="PINHOLE", camera_params=params)
-    _extract(database, image_dir, names, features)
-    _match(database, features)
+    try:
+        _extract(database, image_dir, names, features)
+        _match(database, features)
+    except RuntimeError as err:  # pycolmap's own failures; the caller falls back to random points
+        raise TriangulationError(f"COLMAP failed on the latents in {image_dir}: {_last_line(err)}") from err
     pairs, keypoints = _verified_pairs(database)
     if pairs == 0:
         raise TriangulationError(f"no pair of latents matched ({keypoints:,} SIFT features over {len(names)} latents)")
@@ -193,10 +203,13 @@ def triangulate_at_poses(
     options.triangulation.min_angle = config.min_angle_deg
     options.mapper.filter_min_tri_angle = config.min_angle_deg
     options.mapper.filter_max_reproj_error = config.max_reprojection_error_px
-    model = pycolmap.triangulate_points(
-        _posed_reconstruction(database, w2c), database, image_dir, work_dir / MODEL_DIR,
-        options=options, refine_intrinsics=False,
-    )
+    try:
+        model = pycolmap.triangulate_points(
+            _posed_reconstruction(database, w2c), database, image_dir, work_dir / MODEL_DIR,
+            options=options, refine_intrinsics=False,
+        )
+    except RuntimeError as err:
+        raise TriangulationError(f"COLMAP's triangulation failed in {work_dir}: {_last_line(err)}") from err
     for image in model.images.values():
         moved = np.abs(np.asarray(image.cam_from_world().matrix()) - w2c[image.name]).max()
         if moved > POSE_TOLERANCE:
