@@ -45,6 +45,25 @@ def test_evidence_finds_the_moving_blob_not_the_thin_edge():
     assert filter_size(128, 0.055) == 7 and filter_size(20, 0.01) == 3
 
 
+def test_evidence_grows_from_the_contrasted_core_over_the_whole_object():
+    """An object whose colour differs strongly from the background only in its centre is found whole
+    (hysteresis), while an equally weak patch with no strong pixel stays no evidence."""
+    gen = torch.Generator().manual_seed(2)
+    blocks = 0.04 + 0.02 * torch.randint(0, 2, (N, H // 4, W // 4), generator=gen).float().mul(2).sub(1)
+    residual = blocks.repeat_interleave(4, dim=1).repeat_interleave(4, dim=2)  # 0.02 / 0.06 patches
+    body = torch.zeros(N, H, W, dtype=torch.bool)
+    body[:, 16:32, 12:28] = True
+    residual[body] += 0.07  # weak everywhere on the object ...
+    residual[:, 21:27, 17:23] += 0.3  # ... strong in its centre
+    residual[:, 18:30, 46:58] += 0.04  # a weak patch elsewhere
+    grown, threshold = motion_evidence(residual, DynamicSeedingConfig())
+    plain, _ = motion_evidence(residual, DynamicSeedingConfig(grow_mads=10.0))
+    hit = grown.bool()
+    found, found_plain = float((hit & body).sum() / body.sum()), float((plain.bool() & body).sum() / body.sum())
+    assert found > 0.6 and found > 1.5 * found_plain, (found, found_plain)
+    assert not hit[:, 18:30, 46:58].any()
+
+
 def test_evidence_rejects_bad_shapes():
     with pytest.raises(ValueError, match=r"\[N, H, W\]"):
         motion_evidence(torch.zeros(H, W), DynamicSeedingConfig())

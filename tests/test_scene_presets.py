@@ -234,6 +234,7 @@ def test_large_covers_a_quarter(capture) -> None:
     assert (load(folder, "mask", MIDDLE) > 0).mean() >= 0.25
     coverage = [(load(folder, "mask", f"{p:04d}_{j}.png") > 0).mean() for p in range(N_FRAMES) for j in range(K)]
     assert np.mean(np.array(coverage) >= 0.25) > 0.5
+    assert np.mean(coverage) < 0.4, "about a third of the pixels, not most of them"
     for name in ("two-objects", "articulated", "deforming"):
         mid = (load(capture(name), "mask", MIDDLE) > 0).mean()
         assert 0.03 < mid < 0.2, f"{name} covers {mid:.3f}"

@@ -5,7 +5,8 @@ moved. ``model/motion_init.py`` turns that into moving objects with these pieces
 
 - ``motion_evidence``: per training latent, the static render's colour residual against the EDI
   latent, box-filtered (a moving object is a blob, pose-error residuals are thin edges) and
-  thresholded at a robust level over the whole clip, ``median + threshold_mads · 1.4826 · MAD``.
+  thresholded at a robust level over the whole clip, ``median + threshold_mads · 1.4826 · MAD``, and
+  grown into the connected pixels over a lower level (``grow_mads``; hysteresis).
 - ``seed_gaussians``: a moving object has no Gaussian of its own after the static phase (a static
   Gaussian on its path sees it only in a few latents, so the mask regulariser keeps such Gaussians
   static). One evidence region of one latent is back-projected a little in front of the static
@@ -23,15 +24,22 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import List, Literal, NamedTuple, Optional, Tuple
 
+import numpy as np
 import torch
 import torch.nn.functional as F
-from jaxtyping import Float
+from jaxtyping import Bool, Float
+from scipy import ndimage
 from torch import Tensor
 
 #: MAD -> standard deviation of a normal distribution.
 MAD_TO_SIGMA = 1.4826
 #: offset of a pixel centre from its corner.
 PIXEL_CENTRE = 0.5
+#: 8-connected neighbourhood of evidence regions.
+EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
+#: Box filter (px) of the fine residual that trims grown evidence, and the gap (px) closed in it.
+FINE_WINDOW = 3
+CLOSING_STEPS = 2
 
 
 @dataclass
@@ -49,6 +57,11 @@ class DynamicSeedingConfig:
     over all latents (docs/method.md)"""
     min_threshold: float = 0.03
     """the evidence threshold is at least this (mean absolute colour error in [0, 1])"""
+    grow_mads: float = 2.5
+    """evidence grows from the pixels over the threshold into connected pixels over median + this · σ_MAD
+    (hysteresis: whole objects, not their most contrasted patches; >= threshold_mads: off)"""
+    trim_mads: float = 2.5
+    """... where the 3 px filtered residual is over its median + this · σ_MAD (not the coarse filter's halo)"""
     reference_time: float = 0.5
     """normalised time of the reference latent, searched first for objects
     (and the centre of the dynamic phase's time window)"""
@@ -116,21 +129,56 @@ def filter_size(width: int, fraction: float) -> int:
     return size if size % 2 == 1 else size + 1
 
 
+def robust_level(values: Tensor) -> Tuple[float, float]:
+    """Median and σ_MAD (1.4826 · median absolute deviation) of all values (a fixed sample of
+    2^24 of them on big clips)."""
+    flat = values.flatten()
+    if flat.numel() > 1 << 24:  # quantile/median on a sample keeps big clips cheap
+        flat = flat[torch.randperm(flat.numel(), generator=torch.Generator().manual_seed(0))[: 1 << 24].to(flat.device)]
+    median = flat.median()
+    return float(median), MAD_TO_SIGMA * float((flat - median).abs().median())
+
+
 def motion_evidence(
     residual: Float[Tensor, "N H W"], config: DynamicSeedingConfig
 ) -> Tuple[Float[Tensor, "N H W"], float]:
     """Binary (0/1 float) motion evidence per latent from the per-pixel mean absolute colour
-    residual of the static render; also returns the threshold used."""
+    residual of the static render; also returns the threshold used.
+
+    Pixels whose coarse (``window_fraction``) box-filtered residual is over median +
+    ``threshold_mads`` σ are evidence; with hysteresis (``grow_mads`` < ``threshold_mads``) the
+    evidence grows into the connected pixels over median + ``grow_mads`` σ, kept where the 3 px
+    filtered residual is over its own median + ``trim_mads`` σ (the coarse filter's halo around an
+    object is not the object), with gaps of a few pixels closed and holes filled."""
     if residual.dim() != 3:
         raise ValueError(f"motion_evidence: residual must be [N, H, W], got {tuple(residual.shape)}")
-    filtered = box_filter(residual.float(), filter_size(residual.shape[-1], config.window_fraction))
-    flat = filtered.flatten()
-    if flat.numel() > 1 << 24:  # quantile/median on a sample keeps big clips cheap
-        flat = flat[torch.randperm(flat.numel(), generator=torch.Generator().manual_seed(0))[: 1 << 24].to(flat.device)]
-    median = flat.median()
-    mad = (flat - median).abs().median()
-    threshold = max(float(median + config.threshold_mads * MAD_TO_SIGMA * mad), config.min_threshold)
-    return (filtered > threshold).float(), threshold
+    residual = residual.float()
+    filtered = box_filter(residual, filter_size(residual.shape[-1], config.window_fraction))
+    median, sigma = robust_level(filtered)
+    threshold = max(median + config.threshold_mads * sigma, config.min_threshold)
+    strong = filtered > threshold
+    if config.grow_mads >= config.threshold_mads:
+        return strong.float(), threshold
+    weak = filtered > min(median + config.grow_mads * sigma, threshold)
+    fine = box_filter(residual, FINE_WINDOW)
+    fine_median, fine_sigma = robust_level(fine)
+    return grow_regions(strong, weak, fine > fine_median + config.trim_mads * fine_sigma).float(), threshold
+
+
+def grow_regions(strong: Bool[Tensor, "N H W"], weak: Bool[Tensor, "N H W"], keep: Bool[Tensor, "N H W"]) -> Bool[Tensor, "N H W"]:
+    """Hysteresis per image: the 8-connected regions of ``weak`` that hold a ``strong`` pixel, kept
+    where ``keep`` (plus the strong pixels), closed over ``CLOSING_STEPS`` px gaps, holes filled."""
+    grown = torch.zeros_like(strong)
+    for i in range(strong.shape[0]):
+        hot = strong[i].cpu().numpy()
+        if not hot.any():
+            continue
+        labels, _ = ndimage.label(weak[i].cpu().numpy() | hot, structure=EIGHT_CONNECTED)
+        ids = np.unique(labels[hot])
+        region = np.isin(labels, ids[ids > 0]) & keep[i].cpu().numpy()
+        region = ndimage.binary_closing(region, structure=EIGHT_CONNECTED, iterations=CLOSING_STEPS)
+        grown[i] = torch.from_numpy(ndimage.binary_fill_holes(region) | hot).to(strong.device)
+    return grown
 
 
 class Seeds(NamedTuple):

@@ -44,12 +44,9 @@ from jaxtyping import Float
 from scipy import ndimage
 from torch import Tensor
 
-from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig, Seeds, seed_gaussians
+from edygs_ns.model.dynamic_seeding import EIGHT_CONNECTED, DynamicSeedingConfig, Seeds, seed_gaussians
 from edygs_ns.model.rigid_track import RigidTrack, RigidTrackConfig, coverage_seeds, track_rigid
 from edygs_ns.render.contract import RasterBackend
-
-#: 8-connected neighbourhood for evidence regions.
-EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
 
 
 @dataclass
