@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig
-from edygs_ns.model.motion_init import evidence_regions, initialise_motion
+from edygs_ns.model.motion_init import evidence_regions, initialise_motion, strays_far
 from edygs_ns.model.rigid_track import RigidTrackConfig
 from edygs_ns.render.torch_backend import rasterize_torch
 
@@ -115,3 +115,12 @@ def test_no_evidence_no_objects():
     found = _initialise(latents, torch.zeros(N, H, W), statics, depth, viewmats, c2w, Ks, times)
     assert found.objects == [] and len(found.seed_tensors().points) == 0
     assert float(found.consistency.sum()) == 0.0
+
+
+def test_a_big_object_need_not_travel_its_radius():
+    """The shift a mover needs is its radius, but at least 5 % and at most 10 % of the image width."""
+    cfg = DynamicSeedingConfig()
+    assert strays_far(14.0, radius_px=36.0, width=128, seeding=cfg)  # a third of the image, 14 px
+    assert not strays_far(12.0, radius_px=36.0, width=128, seeding=cfg)
+    assert not strays_far(5.0, radius_px=3.0, width=128, seeding=cfg)  # a few pixels: track jitter
+    assert strays_far(9.0, radius_px=8.0, width=128, seeding=cfg) and not strays_far(7.5, radius_px=8.0, width=128, seeding=cfg)

@@ -109,6 +109,8 @@ class DynamicSeedingConfig:
     where any static point on its reference ray would be (and ``still_shift_fraction``)"""
     still_shift_fraction: float = 0.05
     """... and at least this fraction of the image width (a track of a few pixels jitters by one)"""
+    still_shift_cap: float = 0.1
+    """... but need not exceed this fraction of the image width (a big object need not travel its radius)"""
     min_presence: float = 0.4
     """a mover's evidence (near its track) is found in at least this share of the latents"""
     min_object_iou: float = 0.3

@@ -19,7 +19,8 @@ deformation's base motion (``deformation.RigidMotion``), and the mask-consistenc
    least ``min_object_iou``; scattered residual noise does neither), and no static point explains
    the track: wherever on the reference latent's ray through the region a still point is put (the
    static depth may be wrong), the tracked centre strays from it by ``still_shift`` of the region's
-   radius (and ``still_shift_fraction`` of the image width) in some latent. A region followed
+   radius (at least ``still_shift_fraction``, at most ``still_shift_cap`` of the image width) in
+   some latent. A region followed
    through ``steady_presence`` of the latents is kept even when the rigid silhouette fits it
    poorly (a deforming or articulated object); its body then moves without turning and the
    deformation MLP's residual carries the rest (the fallback where a rigid fit is poor). Otherwise it is a flaw of the static model. A track that mostly runs
@@ -158,6 +159,13 @@ def unexplained_shift(track: RigidTrack, ref: int, viewmats: Float[Tensor, "N 4 
     return best
 
 
+def strays_far(shift_px: float, radius_px: float, width: int, seeding: DynamicSeedingConfig) -> bool:
+    """Whether a track's unexplained shift (pixels) makes its region a mover: ``still_shift`` of its
+    radius (pixels), at least ``still_shift_fraction`` and at most ``still_shift_cap`` of the width."""
+    needed = min(seeding.still_shift * radius_px, seeding.still_shift_cap * width)
+    return shift_px >= max(needed, seeding.still_shift_fraction * width)
+
+
 def _duplicate(track: RigidTrack, movers: List[MotionObject], share: float = 0.5) -> bool:
     """Whether ``track`` follows a mover already found: in the median latent where it sees its
     object, more than ``share`` of its footprint lies in that mover's claimed zone (two tracks of
@@ -230,7 +238,7 @@ def initialise_motion(
         # a region followed through most of the clip is real even when one rigid silhouette fits it
         # poorly (a deforming or articulated object): its track then only carries it, see below
         consistent = presence >= seeding.min_presence and (rigid_fit or presence >= seeding.steady_presence)
-        far = shift >= seeding.still_shift and shift_px >= seeding.still_shift_fraction * width
+        far = strays_far(shift_px, radius_px, width, seeding)
         moved = consistent and far and not _duplicate(track, result.movers)
         reach = tracking.reach * float(distances.max())
         if moved and not rigid_fit:
