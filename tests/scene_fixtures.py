@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from edygs_ns.data.layouts.ply import write_ply_points
+from edygs_ns.io.ply import write_ply_points
 
 #: Exposure length and gap between exposures of the processed fixture, µs.
 EXPOSURE_US = 40_000

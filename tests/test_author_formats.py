@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from test_evdeblurnerf import KINDS, PERIOD_US, T0_US, H, W, c2w_at, llff_rows, write_scene
 
 from edygs_ns.data.layouts import read_scene
-from edygs_ns.data.layouts.common import interpolate_poses
+from edygs_ns.geometry import interpolate_poses
 from edygs_ns.data.layouts.evdeblurnerf import read_evdeblurnerf, read_evdeblurnerf_folder
 from edygs_ns.events.accumulate import accumulate, bin_events, latent_times_us
 from edygs_ns.events.contrast import FALLBACK_THETA, ContrastEstimate, choose_theta

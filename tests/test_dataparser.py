@@ -19,9 +19,9 @@ from scene_fixtures import (
 
 from edygs_ns.data.dataparser import EdygsDataParserConfig
 from edygs_ns.data.event_maps import CACHE_DIR_NAME
-from edygs_ns.data.layouts.common import read_rgb_uint8
+from edygs_ns.io.images import read_rgb_uint8
 from edygs_ns.data.layouts.e2nerf_synthetic import subframe_fractions, subframe_indices
-from edygs_ns.data.layouts.ply import read_ply_points, write_ply_points
+from edygs_ns.io.ply import read_ply_points, write_ply_points
 from edygs_ns.events.edi import EdiConfig, edi_from_frame
 
 #: Pose comparisons after a float32 round trip through the dataparser transform.
@@ -122,7 +122,8 @@ def test_colmap_poses_align_ground_truth(tmp_path):
 
 def test_pose_errors_come_out_in_ground_truth_units(tmp_path):
     """COLMAP's frame is 2.5x the ground truth's: ATE is reported in the ground truth's units."""
-    from edygs_ns.eval.pose_alignment import TrainPoses, pose_rows, to_homogeneous
+    from edygs_ns.eval.pose_alignment import TrainPoses, pose_rows
+    from edygs_ns.geometry import to_homogeneous
     from edygs_ns.eval.trajectory import trajectory_metrics
 
     scene = write_processed_scene(tmp_path / "scene", pose_source="colmap")

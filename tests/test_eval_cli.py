@@ -31,9 +31,9 @@ from edygs_ns.eval.evaluate import (
     evaluate_run,
 )
 from edygs_ns.eval.lpips_loader import LPIPS_WEIGHTS_ENV
-from edygs_ns.eval.pose_alignment import align_cameras, fit_gt_to_model, refined_train_poses, to_homogeneous
+from edygs_ns.eval.pose_alignment import align_cameras, fit_gt_to_model, refined_train_poses
 from edygs_ns.eval.report import LPIPS_UNAVAILABLE_TEXT
-from edygs_ns.eval.trajectory import apply_sim3
+from edygs_ns.geometry import apply_sim3, to_homogeneous
 
 #: Size of the tiny scene (SSIM needs >= 11 pixels a side).
 HEIGHT, WIDTH = 24, 32
@@ -198,7 +198,8 @@ def test_novel_cameras_follow_the_training_frame():
 def test_the_frame_rotation_comes_from_the_camera_orientations():
     """Cameras on a straight line with centre noise: the centres alone cannot fix the rotation
     about the line, the cameras' orientations can."""
-    from edygs_ns.eval.trajectory import rotation_angle, umeyama_sim3
+    from edygs_ns.eval.trajectory import rotation_angle
+    from edygs_ns.geometry import umeyama_sim3
 
     rng = np.random.default_rng(5)
     n = 20

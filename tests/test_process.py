@@ -18,10 +18,12 @@ from edygs_ns.events.readers import open_event_source, read_events
 from edygs_ns.events.types import EventArray
 from edygs_ns.events.writers import write_events_h5
 from edygs_ns.eval.trajectory import ate_rmse
-from edygs_ns.preprocess.colmap import CameraEstimate, ColmapConfig, c2w_opengl_to_colmap_w2c, colmap_w2c_to_c2w_opengl
+from edygs_ns.geometry import c2w_opengl_to_colmap_w2c, colmap_w2c_to_c2w_opengl
+from edygs_ns.preprocess.colmap import CameraEstimate, ColmapConfig
 from edygs_ns.preprocess.inputs import InputConfig
 from edygs_ns.preprocess.steps import STEP_RECORD_NAME
-from edygs_ns.preprocess.writer import Undistorter, complete_poses, read_ply
+from edygs_ns.io.ply import read_ply_points
+from edygs_ns.preprocess.writer import Undistorter, complete_poses
 from edygs_ns.scripts.process import ProcessConfig, RegistrationError, entrypoint, process
 from edygs_ns.scripts.synth import SynthConfig, write_synthetic_scene
 
@@ -70,7 +72,7 @@ def _check_layout(scene: Path, n: int, k: int, height: int, width: int) -> dict:
     assert maps.shape == (n, k - 1, height, width) and maps.dtype == np.float32
     exposures = read_exposures(scene / meta["exposures"])
     assert [e.file.parent.name for e in exposures] == ["blurry"] * n
-    xyz, rgb = read_ply(scene / meta["ply_file_path"])
+    xyz, rgb = read_ply_points(scene / meta["ply_file_path"])
     assert len(xyz) > 0 and len(xyz) == len(rgb)
     return meta
 
@@ -86,7 +88,7 @@ def test_form_b_given_poses_writes_the_layout(raw: Path, tmp_path: Path) -> None
         expected = exposure_bins(source, read_exposures(raw / "exposures.csv"), K)
     np.testing.assert_array_equal(np.load(scene / "event_maps.npy"), expected)
     assert (scene / "gt" / "transforms.json").is_file()
-    xyz, _ = read_ply(scene / "sparse_pc.ply")
+    xyz, _ = read_ply_points(scene / "sparse_pc.ply")
     assert len(xyz) == 500
 
 
@@ -115,7 +117,7 @@ def test_form_b_colmap_registers_and_poses_match_ground_truth(raw: Path, tmp_pat
         (calibration["fl_x"], calibration["fl_y"], calibration["cx"], calibration["cy"]), rel=1e-6)
     assert report["camera_setting"].startswith("calibrated") and "camera.json" in report["camera_setting"]
     # The sparse points sit in the poses' world frame: in front of a camera, inside its image.
-    xyz, _ = read_ply(tmp_path / "scene" / "sparse_pc.ply")
+    xyz, _ = read_ply_points(tmp_path / "scene" / "sparse_pc.ply")
     u, v, depth = _project(xyz.astype(np.float64), est[len(est) // 2], meta)
     inside = (depth > 0) & (u >= 0) & (u < meta["w"]) & (v >= 0) & (v < meta["h"])
     assert inside.mean() > 0.5
@@ -424,7 +426,7 @@ def test_read_calibration_rescales_and_names_bad_files(tmp_path: Path) -> None:
 
 
 def test_with_calibration_sets_fixed_camera_params() -> None:
-    from edygs_ns.data.layouts.common import Intrinsics
+    from edygs_ns.geometry import Intrinsics
     from edygs_ns.preprocess.colmap import with_calibration
 
     square = Intrinsics(128, 96, 110.5, 110.5, 64.0, 48.0)

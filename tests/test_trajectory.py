@@ -7,15 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from edygs_ns.eval.trajectory import (
-    align_poses,
-    apply_sim3,
-    ate_rmse,
-    rpe,
-    scene_extent,
-    trajectory_metrics,
-    umeyama_sim3,
-)
+from edygs_ns.eval.trajectory import ate_rmse, rpe, scene_extent, trajectory_metrics
+from edygs_ns.geometry import align_poses, apply_sim3, umeyama_sim3
 
 N_POSES = 12
 

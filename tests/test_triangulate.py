@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 
 from edygs_ns.data.dataparser import EdygsDataParserConfig
-from edygs_ns.data.layouts.common import Intrinsics
+from edygs_ns.geometry import Intrinsics
 from edygs_ns.events.edi import EdiConfig
 from edygs_ns.preprocess.inputs import InputConfig
 from edygs_ns.preprocess.colmap import ColmapConfig
 from edygs_ns.preprocess.triangulate import TriangulationConfig, TriangulationError, triangulate_at_poses
-from edygs_ns.preprocess.writer import read_ply, write_rgb_png
+from edygs_ns.io.images import write_rgb_png
+from edygs_ns.io.ply import read_ply_points
 from edygs_ns.scripts.process import ProcessConfig, process
 from edygs_ns.scripts.synth import SynthConfig, build_world, write_synthetic_scene
 
@@ -69,7 +70,7 @@ def test_given_poses_points_are_triangulated_on_the_room_surfaces(synth: SynthCo
     assert points["source"] == "triangulated" and points["fallback_reason"] is None
     assert points["num_points"] == report["num_points"] >= TriangulationConfig().min_points
     assert points["triangulation"]["mean_reprojection_error_px"] < 1.0
-    xyz, rgb = read_ply(scene / "sparse_pc.ply")
+    xyz, rgb = read_ply_points(scene / "sparse_pc.ply")
     assert len(xyz) == points["num_points"] and rgb.any()
     rel = _relative_error(synth, scene, xyz.astype(np.float64))
     # ~1 px at 160x120 is ~0.7% of the depth; a few points come from the moving sphere or loose matches
@@ -105,7 +106,7 @@ def test_too_few_points_fall_back_to_random_with_a_warning(synth: SynthConfig, t
     assert f"starting from {RANDOM_POINTS} random points" in warnings[0]
     points = report["initial_points"]
     assert points["source"] == "random" and "fewer than --triangulation.min-points" in points["fallback_reason"]
-    assert len(read_ply(tmp_path / "scene" / "sparse_pc.ply")[0]) == report["num_points"] == RANDOM_POINTS
+    assert len(read_ply_points(tmp_path / "scene" / "sparse_pc.ply")[0]) == report["num_points"] == RANDOM_POINTS
 
 
 def test_given_points_random_keeps_the_random_points(synth: SynthConfig, tmp_path: Path) -> None:

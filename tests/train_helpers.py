@@ -42,7 +42,8 @@ def make_tiny_scene(root: Path, room_init: bool = False, **overrides) -> Path:
     """Raw capture -> processed scene with the true poses (no COLMAP); returns the scene folder.
     ``overrides``: SynthConfig fields changed from TINY_SCENE (e.g. preset="two-objects");
     ``room_init``: initial points on the room's surfaces instead of random ones."""
-    from edygs_ns.preprocess.writer import PLY_NAME, write_ply
+    from edygs_ns.io.ply import write_ply_points
+    from edygs_ns.preprocess.writer import PLY_NAME
     from edygs_ns.scripts.process import ProcessConfig, process
 
     synth = SynthConfig(output_dir=root / "raw", **{**TINY_SCENE, **overrides})
@@ -52,7 +53,7 @@ def make_tiny_scene(root: Path, room_init: bool = False, **overrides) -> Path:
     config.inputs.events = raw / "events.h5"
     process(config)
     if room_init:
-        write_ply(root / "scene" / PLY_NAME, *room_points(synth))
+        write_ply_points(root / "scene" / PLY_NAME, *room_points(synth))
     return root / "scene"
 
 

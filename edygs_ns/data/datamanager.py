@@ -35,9 +35,8 @@ from nerfstudio.utils.rich_utils import CONSOLE, get_progress
 from PIL import Image
 
 from edygs_ns.data.dataparser import EdygsDataParserConfig
+from edygs_ns.io.images import UINT8_MAX
 
-#: Largest 8-bit value (uint8 images and masks to [0, 1]).
-UINT8_MAX = 255.0
 #: Metadata entries too large to deep-copy into nerfstudio's InputDataset.
 HEAVY_METADATA_KEYS = ("event_maps",)
 #: Cameras in a training pair.

@@ -43,14 +43,14 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from edygs_ns.data.layouts import read_scene
-from edygs_ns.data.layouts.common import GT_ALIGNMENT_SCALE_NOTE, Intrinsics, SceneRecord
+from edygs_ns.data.layouts.common import GT_ALIGNMENT_SCALE_NOTE, SceneRecord
+from edygs_ns.io.images import UINT8_MAX
+from edygs_ns.geometry import Intrinsics
 
 #: Below this camera-centre extent (after centring) poses are not auto-scaled (it would blow up).
 MIN_POSE_EXTENT = 1e-6
 #: Index value for cameras that are not a latent of an exposure (novel views, blurry frames).
 NOT_A_LATENT = -1
-#: Largest 8-bit value (random point colours).
-UINT8_MAX = 255
 
 
 @dataclass

@@ -19,7 +19,7 @@ from typing import Any, Dict, List, Optional, Sequence
 import numpy as np
 import torch
 
-from edygs_ns.data.layouts.common import read_rgb_uint8, save_rgb_uint8
+from edygs_ns.io.images import read_rgb_uint8, save_rgb_uint8
 from edygs_ns.events.edi import EdiConfig, edi_from_frame
 
 #: Folder inside the scene folder that holds every cache.

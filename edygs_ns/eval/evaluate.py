@@ -48,7 +48,7 @@ from nerfstudio.utils.rich_utils import CONSOLE, get_progress
 from PIL import Image
 from torch import Tensor
 
-from edygs_ns.data.layouts.common import read_rgb_uint8
+from edygs_ns.io.images import UINT8_MAX, read_rgb_uint8
 from edygs_ns.eval.figures import plot_psnr_over_time, plot_trajectories, save_grid
 from edygs_ns.eval.lpips_loader import LpipsMetric, lpips_or_none
 from edygs_ns.eval.metrics import MetricSet, mask_iou, psnr, ssim
@@ -65,11 +65,11 @@ from edygs_ns.eval.pose_alignment import (
     pose_rows,
     refined_train_poses,
     scale_translations,
-    to_homogeneous,
     with_poses,
 )
 from edygs_ns.eval.report import DEFAULT_NOTES, markdown_table, write_metrics
-from edygs_ns.eval.trajectory import align_poses, rotation_angle
+from edygs_ns.eval.trajectory import rotation_angle
+from edygs_ns.geometry import align_poses, to_homogeneous
 
 EvalSplit = Literal["input", "novel", "both"]
 
@@ -101,8 +101,6 @@ OVERVIEW_SUFFIX = "overview"
 DEFAULT_MAX_GRIDS = 8
 #: Level at which the rendered motion mask counts as dynamic for the IoU, and GT masks are binarised.
 MASK_THRESHOLD = 0.5
-#: Largest 8-bit value.
-UINT8_MAX = 255.0
 #: Per-view values stored in metrics.json under this key of each image split.
 PER_VIEW_KEY = "per_view"
 

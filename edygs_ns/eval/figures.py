@@ -14,6 +14,7 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple, Union
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from edygs_ns.io.images import UINT8_MAX
 
 PathLike = Union[str, Path]
 
@@ -32,8 +33,6 @@ TRAJECTORY_FIGSIZE_IN = (10.0, 5.0)
 PSNR_FIGSIZE_IN = (7.0, 4.0)
 #: Marker size (points) of camera centres in the trajectory plot.
 TRAJECTORY_MARKER_SIZE = 3.0
-#: Maximum value of 8-bit images.
-UINT8_MAX = 255.0
 #: Trajectory projections drawn: (panel title, horizontal axis index, vertical axis index).
 TRAJECTORY_PROJECTIONS: Tuple[Tuple[str, int, int], ...] = (("top-down (x, y)", 0, 1), ("side (x, z)", 0, 2))
 AXIS_NAMES = ("x", "y", "z")

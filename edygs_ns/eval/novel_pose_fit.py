@@ -26,7 +26,7 @@ from nerfstudio.cameras.lie_groups import exp_map_SO3xR3
 from torch import Tensor
 
 from edygs_ns.eval.pose_alignment import with_poses
-from edygs_ns.model.edygs_model import adjust_poses
+from edygs_ns.geometry import adjust_poses
 
 #: Entries of the SE(3) correction: so(3) rotation (3) then translation (3).
 SE3_DOF = 6

@@ -12,7 +12,7 @@ apply it to the ground-truth novel cameras before rendering them. Intrinsics are
 pose-refining NeRF/3DGS evaluation (BARF, Nope-NeRF, CF-3DGS).
 
 Poses are camera-to-world matrices in nerfstudio's OpenGL convention; [N, 3, 4] for `Cameras`,
-[N, 4, 4] float64 numpy arrays for the trajectory maths (edygs_ns.eval.trajectory).
+[N, 4, 4] float64 numpy arrays for the trajectory maths (edygs_ns.geometry, edygs_ns.eval.trajectory).
 """
 
 from __future__ import annotations
@@ -27,29 +27,13 @@ from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
-from edygs_ns.eval.trajectory import MIN_POINTS_SIM3, apply_sim3, pose_sim3, rotation_angle, trajectory_metrics
-
-#: A similarity transform (scale, rotation [3, 3], translation [3]) as edygs_ns.eval.trajectory uses.
-Sim3 = Tuple[float, np.ndarray, np.ndarray]
-#: Pose matrices are [N, POSE_ROWS, 4] for Cameras and [N, 4, 4] homogeneous.
-POSE_ROWS = 3
-HOMOGENEOUS_SIZE = 4
+from edygs_ns.eval.trajectory import rotation_angle, trajectory_metrics
+from edygs_ns.geometry import MIN_POINTS_SIM3, POSE_ROWS, POSE_SIZE, Sim3, apply_sim3, pose_sim3, to_homogeneous
 #: Row (split) names of the pose metrics in the evaluation table.
 INITIAL_POSES_SPLIT = "poses (initial)"
 REFINED_POSES_SPLIT = "poses (refined)"
 #: Metric keys every pose row carries (edygs_ns.eval.trajectory.trajectory_metrics).
 POSE_METRIC_KEYS: Tuple[str, ...] = ("ate", "ate_frac", "rpe_t", "rpe_r", "extent")
-
-
-def to_homogeneous(c2w: Union[Tensor, np.ndarray]) -> np.ndarray:
-    """Camera-to-world poses [N, 3, 4] or [N, 4, 4] (tensor or array) -> float64 [N, 4, 4]."""
-    arr = c2w.detach().cpu().double().numpy() if isinstance(c2w, Tensor) else np.asarray(c2w, dtype=np.float64)
-    if arr.ndim != 3 or arr.shape[1:] not in ((POSE_ROWS, HOMOGENEOUS_SIZE), (HOMOGENEOUS_SIZE, HOMOGENEOUS_SIZE)):
-        raise ValueError(f"poses have shape {arr.shape}, expected [N, 3, 4] or [N, 4, 4] camera-to-world matrices")
-    out = np.zeros((arr.shape[0], HOMOGENEOUS_SIZE, HOMOGENEOUS_SIZE))
-    out[:, :POSE_ROWS, :] = arr[:, :POSE_ROWS, :]
-    out[:, POSE_ROWS, POSE_ROWS] = 1.0
-    return out
 
 
 def scale_translations(c2w: np.ndarray, factor: float) -> np.ndarray:
@@ -99,7 +83,7 @@ def refined_train_poses(model: torch.nn.Module, cameras: Cameras) -> Float[Tenso
 
 def fit_gt_to_model(gt_c2w: np.ndarray, model_c2w: np.ndarray) -> Tuple[Optional[Sim3], str]:
     """Sim(3) mapping ground-truth training cameras onto the model's (refined) ones: rotation from
-    the camera orientations, scale and translation from the centres (``trajectory.pose_sim3``).
+    the camera orientations, scale and translation from the centres (``geometry.pose_sim3``).
 
     Args:
         gt_c2w: [N, 4, 4] ground-truth poses of the training latents.
@@ -126,7 +110,7 @@ def with_poses(cameras: Cameras, c2w: Union[Tensor, np.ndarray]) -> Cameras:
     times and size kept, metadata dropped (so the model applies no pose refinement to them). A
     tensor `c2w` keeps its autograd graph (test-time pose fitting renders through it)."""
     if isinstance(c2w, Tensor):
-        if c2w.dim() != 3 or c2w.shape[1:] not in ((POSE_ROWS, HOMOGENEOUS_SIZE), (HOMOGENEOUS_SIZE, HOMOGENEOUS_SIZE)):
+        if c2w.dim() != 3 or c2w.shape[1:] not in ((POSE_ROWS, POSE_SIZE), (POSE_SIZE, POSE_SIZE)):
             raise ValueError(f"with_poses: poses have shape {tuple(c2w.shape)}, expected [N, 3, 4] or [N, 4, 4]")
         poses = c2w[:, :POSE_ROWS, :].to(cameras.camera_to_worlds.dtype)
     else:

@@ -17,9 +17,8 @@ from typing import Literal
 import numpy as np
 
 from edygs_ns.events.color import decode_to_linear, encode_from_linear
+from edygs_ns.io.images import UINT8_MAX
 
-#: Largest 8-bit pixel value, to scale uint8 images to [0, 1].
-UINT8_MAX = 255.0
 
 
 @dataclass

@@ -22,6 +22,7 @@ from nerfstudio.models.base_model import ModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from edygs_ns.events.color import decode_to_linear
+from edygs_ns.geometry import adjust_poses, c2w_opencv, viewmats_from_c2w
 from edygs_ns.losses.blur import blur_loss
 from edygs_ns.losses.events import DEFAULT_LOG_EPS, event_loss
 from edygs_ns.losses.photometric import l1_dssim, latent_confidence
@@ -50,8 +51,6 @@ from edygs_ns.training.schedule import (
     time_window,
 )
 
-#: OpenGL (nerfstudio) -> OpenCV camera axes: flip y and z.
-GL_TO_CV = (1.0, -1.0, -1.0)
 #: smallest scale after adding the deformation's scale offset (world units).
 MIN_DEFORMED_SCALE = 1e-6
 
@@ -548,24 +547,3 @@ class EdygsModel(SplatExportView):
         images = {"img": torch.cat([gt, pred], dim=1), "mask": outputs["mask"].repeat(1, 1, 3)}
         return metrics, images
 
-
-def adjust_poses(c2w: Tensor, adj: Tensor) -> Tensor:
-    """Apply SE(3) corrections [C, 3, 4] to poses [C, 3, 4] as nerfstudio's camera optimiser
-    does: rotation R' = R_adj R, centre t' = t + t_adj."""
-    return torch.cat([torch.bmm(adj[:, :3, :3], c2w[:, :3, :3]), c2w[:, :3, 3:] + adj[:, :3, 3:]], dim=-1)
-
-
-def c2w_opencv(c2w: Tensor) -> Tensor:
-    """[C, 3|4, 4] camera-to-world (OpenGL axes) -> [C, 4, 4] camera-to-world (OpenCV axes)."""
-    bottom = c2w.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(c2w.shape[0], 1, 4)
-    return torch.cat([torch.cat([c2w[:, :3, :3] * c2w.new_tensor(GL_TO_CV), c2w[:, :3, 3:4]], dim=-1), bottom], dim=1)
-
-
-def viewmats_from_c2w(c2w: Tensor) -> Tensor:
-    """[C, 3|4, 4] camera-to-world (OpenGL axes) -> [C, 4, 4] world-to-camera (OpenCV axes)."""
-    cv = c2w_opencv(c2w)
-    rot, trans = cv[:, :3, :3], cv[:, :3, 3:4]
-    rot_inv = rot.transpose(1, 2)
-    top = torch.cat([rot_inv, -rot_inv @ trans], dim=-1)
-    bottom = c2w.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(c2w.shape[0], 1, 4)
-    return torch.cat([top, bottom], dim=1)

@@ -20,12 +20,11 @@ from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple
 
 import numpy as np
 
+from edygs_ns.geometry import Intrinsics, colmap_w2c_to_c2w_opengl
 from edygs_ns.preprocess.steps import progress_bar
 
 #: glog level of COLMAP's own log lines shown (0 info, 1 warning, 2 error).
 COLMAP_LOG_LEVEL = 2
-#: Flip of the camera y and z axes between OpenCV and OpenGL conventions.
-OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 #: OPENCV distortion parameters, in COLMAP's order after fx, fy, cx, cy.
 OPENCV_DISTORTION = ("k1", "k2", "p1", "p2")
 #: File names of the saved result inside the COLMAP work folder.
@@ -92,7 +91,7 @@ def with_calibration(config: ColmapConfig, intrinsics: Any) -> Tuple[ColmapConfi
 
     Args:
         config: the user's COLMAP settings.
-        intrinsics: an edygs_ns.data.layouts.common.Intrinsics at the latents' resolution, or None.
+        intrinsics: an edygs_ns.geometry.Intrinsics at the latents' resolution, or None.
 
     Returns:
         (config unchanged when there is no calibration, when use_calibration is off or when
@@ -130,9 +129,14 @@ class CameraEstimate:
     p1: float = 0.0
     p2: float = 0.0
 
+    @property
+    def intrinsics(self) -> Intrinsics:
+        """The pinhole part (distortion dropped)."""
+        return Intrinsics(self.width, self.height, self.fl_x, self.fl_y, self.cx, self.cy)
+
     def matrix(self) -> np.ndarray:
         """[3, 3] calibration matrix K."""
-        return np.array([[self.fl_x, 0.0, self.cx], [0.0, self.fl_y, self.cy], [0.0, 0.0, 1.0]])
+        return self.intrinsics.matrix()
 
     def distortion(self) -> np.ndarray:
         """[4] OpenCV distortion coefficients (k1, k2, p1, p2)."""
@@ -203,18 +207,6 @@ class ColmapResult:
                 mean_reprojection_error=float(meta["mean_reprojection_error"]),
                 num_reconstructions=int(meta["num_reconstructions"]),
             )
-
-
-def colmap_w2c_to_c2w_opengl(w2c_3x4: np.ndarray) -> np.ndarray:
-    """COLMAP world-to-camera [3, 4] (OpenCV axes) -> camera-to-world [4, 4] (OpenGL axes)."""
-    w2c = np.eye(4)
-    w2c[:3, :4] = w2c_3x4
-    return np.linalg.inv(w2c) @ OPENCV_TO_OPENGL
-
-
-def c2w_opengl_to_colmap_w2c(c2w: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`colmap_w2c_to_c2w_opengl`: [4, 4] c2w (OpenGL) -> [3, 4] w2c (OpenCV)."""
-    return np.linalg.inv(np.asarray(c2w, dtype=np.float64) @ OPENCV_TO_OPENGL)[:3, :4]
 
 
 def _camera_estimate(camera: "object") -> CameraEstimate:

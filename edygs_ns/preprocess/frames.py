@@ -15,9 +15,8 @@ from typing import List, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
+from edygs_ns.io.images import UINT8_MAX
 
-#: Largest value of an 8-bit pixel.
-UINT8_MAX = 255
 #: Colour channels of every frame in a capture (RGB).
 RGB_CHANNELS = 3
 #: Bit depths a 16-bit container may hold, smallest first.

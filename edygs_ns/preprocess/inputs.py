@@ -57,7 +57,8 @@ from edygs_ns.events.readers import ArrayEventSource, EventSource, native_time_u
 from edygs_ns.events.types import EventArray
 from edygs_ns.events.units import AUTO_UNIT, US_PER_TICK, detect_time_unit
 from edygs_ns.preprocess.frames import frames_to_rgb8, read_frames, read_raw_image, to_rgb8  # noqa: F401 (re-exported)
-from edygs_ns.data.layouts.common import E2NERF_EVENT_FILES, Intrinsics, interpolate_poses  # noqa: F401 (re-exported)
+from edygs_ns.geometry import Intrinsics, interpolate_poses
+from edygs_ns.data.layouts.common import E2NERF_EVENT_FILES
 from edygs_ns.data.layouts.e2nerf_real import DEFAULT_THETA as E2NERF_REAL_DEFAULT_THETA
 from edygs_ns.data.layouts.e2nerf_real import E2NERF_BIN_US
 

@@ -26,8 +26,8 @@ from typing import Any, Callable, Dict, Literal, Optional, Sequence, Tuple
 import numpy as np
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from edygs_ns.data.layouts.common import Intrinsics
-from edygs_ns.preprocess.colmap import COLMAP_LOG_LEVEL, ColmapConfig, _extract, _match, c2w_opengl_to_colmap_w2c
+from edygs_ns.geometry import Intrinsics, c2w_opengl_to_colmap_w2c
+from edygs_ns.preprocess.colmap import COLMAP_LOG_LEVEL, ColmapConfig, _extract, _match
 
 #: Where the given-pose initial points come from: triangulated from the latents, or random.
 GivenPoints = Literal["triangulated", "random"]

@@ -21,8 +21,9 @@ import numpy as np
 
 from edygs_ns.events.exposures import Exposure, write_exposures
 from edygs_ns.preprocess.colmap import CameraEstimate
-from edygs_ns.data.layouts.common import Intrinsics
-from edygs_ns.preprocess.inputs import interpolate_poses
+from edygs_ns.geometry import Intrinsics, interpolate_poses
+from edygs_ns.io.images import read_rgb_png, write_rgb_png
+from edygs_ns.io.ply import write_ply_points
 
 #: Folder names and files of the processed layout.
 LATENTS_DIR = "latents"
@@ -56,57 +57,6 @@ def latent_name(blurry_index: int, latent_index: int) -> str:
 def blurry_name(blurry_index: int) -> str:
     """File name of blurry frame i: ``NNNN.png``."""
     return f"{blurry_index:04d}.png"
-
-
-def write_rgb_png(path: Path, rgb: np.ndarray) -> None:
-    """Write uint8 [H, W, 3] RGB as PNG."""
-    if not cv2.imwrite(str(path), cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR)):
-        raise OSError(f"{path}: could not write the image")
-
-
-def read_rgb_png(path: Path) -> np.ndarray:
-    """Read a PNG written by :func:`write_rgb_png` as uint8 [H, W, 3] RGB."""
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise FileNotFoundError(f"{path}: cannot read the image")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
-
-
-def write_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> None:
-    """Binary little-endian PLY with vertex x, y, z (float32) and red, green, blue (uchar).
-
-    Args:
-        path: destination file.
-        xyz: [P, 3] positions.
-        rgb: [P, 3] uint8 colours.
-    """
-    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    rgb = np.asarray(rgb, dtype=np.uint8).reshape(-1, 3)
-    if len(xyz) != len(rgb):
-        raise ValueError(f"write_ply: {len(xyz)} positions but {len(rgb)} colours")
-    vertex = np.zeros(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    for axis, name in enumerate("xyz"):
-        vertex[name] = xyz[:, axis]
-    for channel, name in enumerate(("red", "green", "blue")):
-        vertex[name] = rgb[:, channel]
-    header = (
-        "ply\nformat binary_little_endian 1.0\n"
-        f"element vertex {len(xyz)}\n"
-        "property float x\nproperty float y\nproperty float z\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
-    )
-    with open(path, "wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(vertex.tobytes())
-
-
-def read_ply(path: Path) -> Tuple[np.ndarray, np.ndarray]:
-    """Read a PLY written by :func:`write_ply`: ([P, 3] float32 xyz, [P, 3] uint8 rgb)."""
-    data = Path(path).read_bytes()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    count = int(next(line.split()[-1] for line in data[:end].decode("ascii").splitlines() if line.startswith("element vertex")))
-    vertex = np.frombuffer(data[end:], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")], count=count)
-    return np.stack([vertex["x"], vertex["y"], vertex["z"]], 1), np.stack([vertex["red"], vertex["green"], vertex["blue"]], 1)
 
 
 def complete_poses(c2w: np.ndarray, registered: np.ndarray, times_us: np.ndarray) -> np.ndarray:
@@ -386,7 +336,7 @@ def write_processed_scene(scene: Path, content: SceneContent, work_dir: Path) ->
     _place_event_maps(content.event_maps, scene / EVENT_MAPS_NAME, undistort)
     rows = [Exposure(frame=i, start_us=e.start_us, end_us=e.end_us, file=blurry_targets[i]) for i, e in enumerate(content.exposures)]
     write_exposures(scene / EXPOSURES_NAME, rows, relative_to=scene)
-    write_ply(scene / PLY_NAME, content.points_xyz, content.points_rgb)
+    write_ply_points(scene / PLY_NAME, content.points_xyz, content.points_rgb)
     if content.gt_dir is not None:
         copy_ground_truth(
             content.gt_dir, scene / GT_DIR, content.gt_frame_map or {},

@@ -60,10 +60,9 @@ from edygs_ns.preprocess.writer import (
     complete_poses,
     latent_name,
     random_points_from_views,
-    read_rgb_png,
     write_processed_scene,
-    write_rgb_png,
 )
+from edygs_ns.io.images import read_rgb_png, write_rgb_png
 
 #: Hidden work folder inside the output (intermediate products of the steps).
 WORK_DIR_NAME = ".edygs_work"
@@ -543,9 +542,10 @@ def process(config: ProcessConfig) -> Dict[str, Any]:
 
 
 def _count_points(scene: Path) -> int:
-    from edygs_ns.preprocess.writer import PLY_NAME, read_ply
+    from edygs_ns.io.ply import read_ply_points
+    from edygs_ns.preprocess.writer import PLY_NAME
 
-    return int(len(read_ply(scene / PLY_NAME)[0]))
+    return int(len(read_ply_points(scene / PLY_NAME)[0]))
 
 
 def entrypoint() -> None:

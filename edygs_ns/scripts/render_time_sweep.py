@@ -27,6 +27,7 @@ from nerfstudio.utils.rich_utils import CONSOLE, get_progress
 from torch import Tensor
 
 from edygs_ns.eval.pose_alignment import refined_train_poses, with_poses
+from edygs_ns.io.images import UINT8_MAX
 
 #: Frames of the default sweep.
 DEFAULT_NUM_FRAMES = 30
@@ -42,8 +43,6 @@ VIDEO_NAME = "sweep.mp4"
 FRAME_PATTERN = "{index:05d}.png"
 #: H.264 with 4:2:0 chroma needs even frame sides: frames are padded by up to this many pixels.
 VIDEO_SIDE_MULTIPLE = 2
-#: Largest 8-bit value.
-UINT8_MAX = 255
 
 
 def sweep_times(num_frames: int, time_start: float = 0.0, time_end: float = 1.0) -> np.ndarray:

@@ -18,47 +18,14 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
-from PIL import Image
+
+from edygs_ns.geometry import POSE_SIZE, Intrinsics
 
 #: The layout names a reader can produce.
 LAYOUT_NAMES: Tuple[str, ...] = ("processed", "e2nerf-synthetic", "e2nerf-real", "evdeblurnerf")
-#: Side of a homogeneous pose matrix.
-POSE_SIZE = 4
-#: Largest 8-bit value.
-UINT8_MAX = 255
 #: Key of SceneRecord.notes holding the scale of the Sim(3) that moved the ground-truth poses
 #: into the estimated poses' frame (estimated units per ground-truth unit).
 GT_ALIGNMENT_SCALE_NOTE = "gt_alignment_scale"
-
-
-@dataclass(frozen=True)
-class Intrinsics:
-    """A pinhole camera without distortion (pixel centres at integer + 0.5, as COLMAP and nerfstudio).
-
-    Attributes:
-        width: image width in pixels.
-        height: image height in pixels.
-        fl_x: focal length along x in pixels.
-        fl_y: focal length along y in pixels.
-        cx: principal point x in pixels.
-        cy: principal point y in pixels.
-    """
-
-    width: int
-    height: int
-    fl_x: float
-    fl_y: float
-    cx: float
-    cy: float
-
-    def resized(self, width: int, height: int) -> "Intrinsics":
-        """The same camera for images resized to width x height pixels."""
-        sx, sy = width / self.width, height / self.height
-        return Intrinsics(width, height, self.fl_x * sx, self.fl_y * sy, self.cx * sx, self.cy * sy)
-
-    def matrix(self) -> np.ndarray:
-        """[3, 3] float64 calibration matrix K."""
-        return np.array([[self.fl_x, 0.0, self.cx], [0.0, self.fl_y, self.cy], [0.0, 0.0, 1.0]])
 
 
 @dataclass
@@ -225,37 +192,6 @@ def as_pose(matrix: Any, source: Path, what: str) -> np.ndarray:
     return arr
 
 
-def image_size(path: Path) -> Tuple[int, int]:
-    """(height, width) of an image file without decoding its pixels."""
-    with Image.open(path) as img:
-        return int(img.height), int(img.width)
-
-
-def read_rgb_uint8(path: Path, background: Optional[float] = None) -> np.ndarray:
-    """Read an image as [H, W, 3] uint8.
-
-    Args:
-        path: image file (grey, RGB or RGBA).
-        background: for images with alpha, the grey level in [0, 1] they are composited on
-            (color = rgb * a + background * (1 - a)); None drops alpha without compositing.
-    """
-    with Image.open(path) as img:
-        has_alpha = img.mode in ("RGBA", "LA") or (img.mode == "P" and "transparency" in img.info)
-        if has_alpha and background is not None:
-            rgba = np.asarray(img.convert("RGBA"), dtype=np.float32) / UINT8_MAX
-            rgb = rgba[..., :3] * rgba[..., 3:] + background * (1.0 - rgba[..., 3:])
-            return np.clip(np.round(rgb * UINT8_MAX), 0, UINT8_MAX).astype(np.uint8)
-        return np.asarray(img.convert("RGB"), dtype=np.uint8)
-
-
-def save_rgb_uint8(image: np.ndarray, path: Path) -> None:
-    """Write an [H, W, 3] image (uint8, or float in [0, 1]) as an 8-bit PNG."""
-    if image.dtype != np.uint8:
-        image = np.clip(np.round(np.asarray(image, dtype=np.float64) * UINT8_MAX), 0, UINT8_MAX).astype(np.uint8)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(image).save(path)
-
-
 def numbered_files(folder: Path, pattern: str) -> List[Tuple[int, Path]]:
     """Files in ``folder`` whose name matches ``pattern`` (a regex with one integer group), by number.
 
@@ -336,46 +272,3 @@ def latent_grid(n_blurry: int, k: int) -> Tuple[np.ndarray, np.ndarray]:
     latent = np.tile(np.arange(k, dtype=np.int64), n_blurry)
     return blurry, latent
 
-
-#: Fewest known instants for cubic interpolation of translations (a not-a-knot cubic spline,
-#: as scipy's interp1d(kind="cubic")); with fewer, translations are interpolated linearly.
-CUBIC_MIN_POINTS = 4
-
-
-def interpolate_poses(
-    times: np.ndarray, c2w: np.ndarray, query: np.ndarray, translation: str = "linear"
-) -> np.ndarray:
-    """Poses at query times: rotations slerped, centres linear or cubic; clamped outside the known times.
-
-    Args:
-        times: [M] strictly increasing µs.
-        c2w: [M, 4, 4] poses at those times.
-        query: [Q] µs.
-        translation: "linear" (piecewise linear centres) or "cubic" (a not-a-knot cubic spline
-            through the centres, what scipy's ``interp1d(kind="cubic")`` gives, as EvDeblurNeRF
-            interpolates its camera path; linear when fewer than CUBIC_MIN_POINTS are known).
-
-    Returns:
-        [Q, 4, 4] float64.
-
-    Raises:
-        ValueError: an unknown ``translation``.
-    """
-    from scipy.interpolate import CubicSpline
-    from scipy.spatial.transform import Rotation, Slerp
-
-    if translation not in ("linear", "cubic"):
-        raise ValueError(f"interpolate_poses: translation must be 'linear' or 'cubic', got {translation!r}")
-    known = np.asarray(times, dtype=np.float64)
-    q = np.clip(np.asarray(query, dtype=np.float64), known[0], known[-1])
-    out = np.tile(np.eye(4), (len(q), 1, 1))
-    if len(known) == 1:
-        out[:] = c2w[0]
-        return out
-    out[:, :3, :3] = Slerp(known, Rotation.from_matrix(c2w[:, :3, :3]))(q).as_matrix()
-    if translation == "cubic" and len(known) >= CUBIC_MIN_POINTS:
-        out[:, :3, 3] = CubicSpline(known, c2w[:, :3, 3], axis=0, bc_type="not-a-knot")(q)
-    else:
-        for axis in range(3):
-            out[:, axis, 3] = np.interp(q, known, c2w[:, axis, 3])
-    return out

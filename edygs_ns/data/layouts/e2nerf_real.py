@@ -33,15 +33,14 @@ import numpy as np
 from edygs_ns.data.event_maps import cached_edi_latents, cached_events_pt
 from edygs_ns.data.layouts.common import (
     E2NERF_EVENT_FILES,
-    POSE_SIZE,
     find_e2nerf_events,
-    Intrinsics,
     SceneRecord,
-    image_size,
     latent_grid,
     uniform_latent_times,
 )
+from edygs_ns.io.images import image_size
 from edygs_ns.events.edi import EdiConfig
+from edygs_ns.geometry import Intrinsics, llff_to_opengl
 
 #: Pose file.
 POSES_BOUNDS_FILE = "poses_bounds.npy"
@@ -67,17 +66,6 @@ DEFAULT_COLOR_SPACE = "linear"
 def is_e2nerf_real(root: Path) -> bool:
     """An E2NeRF real scene has poses_bounds.npy, events.pt (or event.pt) and an images/ folder."""
     return (root / POSES_BOUNDS_FILE).is_file() and find_e2nerf_events(root) is not None and (root / IMAGES_FOLDER).is_dir()
-
-
-def llff_to_opengl(poses: np.ndarray) -> np.ndarray:
-    """LLFF 3x5 poses [N, 3, 5] (columns down, right, back, t, hwf) to OpenGL c2w [N, 4, 4]."""
-    out = np.zeros((len(poses), POSE_SIZE, POSE_SIZE), dtype=np.float64)
-    out[:, :3, 0] = poses[:, :, 1]
-    out[:, :3, 1] = -poses[:, :, 0]
-    out[:, :3, 2] = poses[:, :, 2]
-    out[:, :3, 3] = poses[:, :, 3]
-    out[:, 3, 3] = 1.0
-    return out
 
 
 def read_e2nerf_real(

@@ -41,14 +41,11 @@ import numpy as np
 
 from edygs_ns.data.event_maps import cached_edi_latents, cached_events_pt, cached_rgb_images
 from edygs_ns.data.layouts.common import (
-    POSE_SIZE,
-    Intrinsics,
     E2NERF_EVENT_FILES,
     SceneRecord,
     ViewSet,
     as_pose,
     find_e2nerf_events,
-    image_size,
     latent_grid,
     latent_times_from_fractions,
     load_json,
@@ -56,6 +53,8 @@ from edygs_ns.data.layouts.common import (
     numbered_files,
     require_key,
 )
+from edygs_ns.io.images import image_size
+from edygs_ns.geometry import POSE_SIZE, Intrinsics
 from edygs_ns.events.edi import EdiConfig
 
 #: Train camera file.

@@ -48,7 +48,7 @@ What the authors' code establishes (repo uzh-rpg/EvDeblurNeRF, files named):
 - Poses between known instants: the authors slerp the rotations of ``all_poses_bounds.npy``
   over ``all_timestamps.npy`` and interpolate the translations with a cubic ``interp1d``
   (clamped to their range). We do the same at every latent instant (rotations slerped,
-  centres on a not-a-knot cubic spline, :func:`~edygs_ns.data.layouts.common.interpolate_poses`;
+  centres on a not-a-knot cubic spline, :func:`~edygs_ns.geometry.interpolate_poses`;
   linear with fewer than 4 known instants); without those files the per-image poses at
   ``timestamps`` are the known instants.
 
@@ -65,19 +65,13 @@ from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from edygs_ns.data.layouts.common import (
-    Intrinsics,
-    SceneRecord,
-    ViewSet,
-    image_size,
-    interpolate_poses,
-    latent_grid,
-)
-from edygs_ns.data.layouts.e2nerf_real import llff_to_opengl
+from edygs_ns.data.layouts.common import SceneRecord, ViewSet, latent_grid
+from edygs_ns.io.images import image_size
 from edygs_ns.events.accumulate import check_event_coverage, exposure_bins, latent_times_us
 from edygs_ns.events.edi import EdiConfig
 from edygs_ns.events.exposures import Exposure
 from edygs_ns.events.readers import TICKS_PER_US, EventSource, H5EventSource
+from edygs_ns.geometry import Intrinsics, interpolate_poses, llff_to_opengl
 
 #: Folder of the images (the authors' loader: "images" + "_" + factor, factor 1).
 IMAGES_FOLDER = "images_1"

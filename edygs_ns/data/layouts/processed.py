@@ -18,7 +18,6 @@ import numpy as np
 from edygs_ns.data.event_maps import load_event_maps_npy
 from edygs_ns.data.layouts.common import (
     GT_ALIGNMENT_SCALE_NOTE,
-    Intrinsics,
     SceneRecord,
     ViewSet,
     as_pose,
@@ -26,7 +25,8 @@ from edygs_ns.data.layouts.common import (
     require_files,
     require_key,
 )
-from edygs_ns.data.layouts.ply import read_ply_points
+from edygs_ns.io.ply import read_ply_points
+from edygs_ns.geometry import Intrinsics, align_poses, apply_sim3
 
 #: The scene description file.
 TRANSFORMS_FILE = "transforms.json"
@@ -186,8 +186,6 @@ def _read_gt(
 def _align_gt_to_estimate(record: SceneRecord, source: Path) -> None:
     """Move ground-truth poses into the estimated poses' frame by a Sim(3) on camera centres."""
     from nerfstudio.utils.rich_utils import CONSOLE
-
-    from edygs_ns.eval.trajectory import align_poses, apply_sim3
 
     if record.gt_c2w is None or len(record.gt_c2w) < MIN_ALIGNMENT_POINTS:
         if record.novel is not None:

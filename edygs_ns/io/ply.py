@@ -11,6 +11,8 @@ from typing import List, Optional, Tuple
 
 import numpy as np
 
+from edygs_ns.io.images import UINT8_MAX
+
 #: PLY scalar type names (both spellings) and their numpy type codes.
 PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -22,8 +24,6 @@ PLY_TYPES = {
 PLY_FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
 #: Colour of points that carry none (mid grey, 8-bit).
 DEFAULT_POINT_GREY = 128
-#: Largest 8-bit value.
-UINT8_MAX = 255
 #: Most header lines read before giving up (guards against non-PLY files).
 MAX_HEADER_LINES = 1000
 
@@ -122,8 +122,10 @@ def read_ply_points(path: Path) -> Tuple[np.ndarray, np.ndarray]:
 
 def write_ply_points(path: Path, xyz: np.ndarray, rgb: np.ndarray, binary: bool = True) -> None:
     """Write points [P, 3] float and colours [P, 3] uint8 as a PLY file (for fixtures and tools)."""
-    xyz = np.asarray(xyz, dtype=np.float32)
-    rgb = np.asarray(rgb, dtype=np.uint8)
+    xyz = np.asarray(xyz, dtype=np.float32).reshape(-1, 3)
+    rgb = np.asarray(rgb, dtype=np.uint8).reshape(-1, 3)
+    if len(xyz) != len(rgb):
+        raise ValueError(f"write_ply_points: {len(xyz)} positions but {len(rgb)} colours")
     fmt = "binary_little_endian" if binary else "ascii"
     header = (
         f"ply\nformat {fmt} 1.0\nelement vertex {len(xyz)}\n"
