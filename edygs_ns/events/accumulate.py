@@ -8,13 +8,13 @@ from __future__ import annotations
 
 from contextlib import nullcontext
 from pathlib import Path
-from typing import List, Sequence, Union
+from typing import Iterable, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
 from edygs_ns.events.coverage import measure_coverage, resolve_coverage
 from edygs_ns.events.exposures import Exposure
-from edygs_ns.events.readers import ArrayEventSource, EventSource
+from edygs_ns.events.readers import READ_CHUNK_EVENTS, ArrayEventSource, EventSource
 from edygs_ns.events.types import EventArray
 
 #: Fewest exposures for which exposure_bins shows a progress bar.
@@ -65,11 +65,22 @@ def bin_events(events: EventArray, boundaries_us: np.ndarray) -> np.ndarray:
     Raises:
         ValueError: boundaries not one-dimensional, fewer than two, or not strictly increasing.
     """
+    edges = _check_edges(boundaries_us)
+    h, w = events.sensor_size
+    return _bin_counts(events, edges).astype(np.float32).reshape(len(edges) - 1, h, w)
+
+
+def _check_edges(boundaries_us: np.ndarray) -> np.ndarray:
     edges = np.asarray(boundaries_us)
     if edges.ndim != 1 or len(edges) < 2:
         raise ValueError(f"bin_events: boundaries_us must be a 1-D array of at least 2 edges, got shape {edges.shape}")
     if np.any(np.diff(edges) <= 0):
         raise ValueError(f"bin_events: boundaries_us must strictly increase, got {edges.tolist()}")
+    return edges
+
+
+def _bin_counts(events: EventArray, edges: np.ndarray) -> np.ndarray:
+    """[B * H * W] float64 signed counts of bin_events, before the cast to float32."""
     n_bins = len(edges) - 1
     h, w = events.sensor_size
     cuts = np.searchsorted(events.t, edges, side="left")
@@ -77,8 +88,50 @@ def bin_events(events: EventArray, boundaries_us: np.ndarray) -> np.ndarray:
     bin_offset = np.repeat(np.arange(n_bins, dtype=np.int64) * (h * w), np.diff(cuts))
     window = events.select(slice(first, last))
     flat = _pixel_index(window) + bin_offset
-    counts = np.bincount(flat, weights=window.signed(), minlength=n_bins * h * w)
-    return counts.astype(np.float32).reshape(n_bins, h, w)
+    return np.bincount(flat, weights=window.signed(), minlength=n_bins * h * w)
+
+
+def polarity_events(events: EventArray, polarity: int) -> EventArray:
+    """The events of one polarity, each counted +1 (times its weight): unsigned counts."""
+    kept = events.select(events.p > 0 if polarity > 0 else events.p < 0)
+    return EventArray(kept.x, kept.y, kept.t, np.ones(len(kept), np.int8), kept.sensor_size, kept.weight)
+
+
+def bin_chunks(
+    chunks: Iterable[EventArray], requests: Sequence[Tuple[np.ndarray, Optional[int]]], sensor_size: Tuple[int, int]
+) -> Tuple[List[np.ndarray], List[int]]:
+    """Several binnings of one stream of events in one pass, one chunk in memory at a time.
+
+    Each chunk's counts are added in float64 and cast to float32 at the end, so integer counts
+    (unweighted events) equal :func:`bin_events` over all the events at once, exactly.
+
+    Args:
+        chunks: consecutive pieces of one time-sorted stream (e.g. :meth:`EventSource.chunks`).
+        requests: (boundaries_us, polarity) pairs: the [B+1] strictly increasing bin edges, and
+            None for signed counts (as bin_events), +1 / -1 for the count of the positive / negative
+            events alone (each +1, times its weight).
+        sensor_size: (height, width) of the events.
+
+    Returns:
+        (bins, counts): per request, the [B, H, W] float32 bins and the number of entries that
+        fell inside its edges.
+    """
+    edges = [_check_edges(b) for b, _ in requests]
+    sums = [None] * len(requests)  # type: List[Optional[np.ndarray]]
+    counts = [0] * len(requests)
+    for chunk in chunks:
+        for r, ((_, polarity), e) in enumerate(zip(requests, edges)):
+            events = chunk if polarity is None else polarity_events(chunk, polarity)
+            lo, hi = np.searchsorted(events.t, [e[0], e[-1]], side="left")
+            counts[r] += int(hi - lo)
+            part = _bin_counts(events, e)
+            sums[r] = part if sums[r] is None else np.add(sums[r], part, out=sums[r])
+    h, w = int(sensor_size[0]), int(sensor_size[1])
+    bins = []
+    for total, e in zip(sums, edges):
+        shape = (len(e) - 1, h, w)
+        bins.append(np.zeros(shape, np.float32) if total is None else total.astype(np.float32).reshape(shape))
+    return bins, counts
 
 
 def latent_times_us(start_us: int, end_us: int, k: int) -> np.ndarray:
@@ -136,14 +189,31 @@ def exposure_bins(
         for i in iterator:
             e = exposures[i]
             times = latent_times_us(e.start_us, e.end_us, k)
-            window = src.window(int(times[0]), int(times[-1]))
-            if len(window) == 0:
-                raise ValueError(
-                    f"{src.name}: empty exposure window for frame {e.frame} ({Path(e.file).name}): no events in "
-                    f"[{e.start_us}, {e.end_us}) µs; check the event time base (t_offset) against the exposure table"
-                )
-            out[i] = bin_events(window, times)
+            out[i] = exposure_window_bins(src, e, times)
     return out
+
+
+def empty_window_error(source: EventSource, exposure: Exposure) -> ValueError:
+    """The error of an exposure window holding no events, naming the frame."""
+    return ValueError(
+        f"{source.name}: empty exposure window for frame {exposure.frame} ({Path(exposure.file).name}): no events in "
+        f"[{exposure.start_us}, {exposure.end_us}) µs; check the event time base (t_offset) against the exposure table"
+    )
+
+
+def exposure_window_bins(
+    source: EventSource, exposure: Exposure, times_us: np.ndarray, max_events: int = READ_CHUNK_EVENTS
+) -> np.ndarray:
+    """[k-1, H, W] float32 bins of one exposure between its latent times, read ``max_events`` at a time.
+
+    Raises:
+        ValueError: no event between the first and last latent time (:func:`empty_window_error`).
+    """
+    chunks = source.chunks(int(times_us[0]), int(times_us[-1]), max_events)
+    (bins,), (count,) = bin_chunks(chunks, [(times_us, None)], source.sensor_size)
+    if count == 0:
+        raise empty_window_error(source, exposure)
+    return bins
 
 
 def check_event_coverage(

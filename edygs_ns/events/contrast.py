@@ -27,8 +27,9 @@ matters: edygs-synth averages 9 sub-frames (ends included), which M = 9 matches;
 5 sub-frames, M = 17 instead of 5 moved Θ by −7%. A real exposure is continuous: there, a larger
 M is closer.
 
-Memory stays bounded: :class:`ContrastAccumulator` takes one exposure's events at a time (the
-window the caller reads anyway for EDI) and keeps at most ``max_pixels`` equations in all.
+Memory stays bounded: :class:`ContrastAccumulator` takes one exposure's counts at a time (binned
+from the read the caller makes anyway for EDI, chunk by chunk: :mod:`edygs_ns.events.stream`) and
+keeps at most ``max_pixels`` equations in all.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from edygs_ns.events.accumulate import bin_events
+from edygs_ns.events.accumulate import bin_chunks, bin_events, polarity_events
 from edygs_ns.events.exposures import Exposure
 from edygs_ns.events.readers import ArrayEventSource, EventSource
 from edygs_ns.events.types import EventArray
@@ -141,11 +142,12 @@ def _well_exposed(frame: np.ndarray) -> np.ndarray:
 
 def _cumulative_counts(events: EventArray, edges: np.ndarray, polarity: int) -> np.ndarray:
     """[len(edges), H, W] float32 count of events of one polarity from edges[0] to each edge."""
-    keep = events.p > 0 if polarity > 0 else events.p < 0
-    kept = events.select(keep)
-    one = EventArray(kept.x, kept.y, kept.t, np.ones(len(kept), np.int8), kept.sensor_size, kept.weight)
-    bins = bin_events(one, edges)
-    out = np.zeros((len(edges),) + bins.shape[1:], np.float32)
+    return _cumulative(bin_events(polarity_events(events, polarity), edges))
+
+
+def _cumulative(bins: np.ndarray) -> np.ndarray:
+    """[B + 1, H, W] float32 running sums of [B, H, W] bins, zero first."""
+    out = np.zeros((len(bins) + 1,) + bins.shape[1:], np.float32)
     np.cumsum(bins, axis=0, out=out[1:])
     return out
 
@@ -181,21 +183,51 @@ class ContrastAccumulator:
         Raises:
             ValueError: the frame's size is not the events' sensor size.
         """
-        if np.asarray(frame).shape[:2] != events.sensor_size:
-            raise ValueError(f"ContrastAccumulator.add: frame {np.asarray(frame).shape} does not match the events' "
-                             f"sensor {events.sensor_size} (frame {exposure.frame})")
-        times = sample_times_us(exposure, self.samples)
-        if np.any(np.diff(times) <= 0):  # an exposure of fewer µs than instants: no equations
+        self._check_frame(frame, exposure, events.sensor_size)
+        edges = self.edges(exposure, next_start_us)
+        if edges is None:  # an exposure of fewer µs than instants: no equations
             self._previous = None
             return
+        self.add_binned(frame, exposure, bin_events(polarity_events(events, +1), edges),
+                        bin_events(polarity_events(events, -1), edges), count_scale)
+
+    @staticmethod
+    def _check_frame(frame: np.ndarray, exposure: Exposure, sensor_size: Tuple[int, int]) -> None:
+        if np.asarray(frame).shape[:2] != tuple(sensor_size):
+            raise ValueError(f"ContrastAccumulator.add: frame {np.asarray(frame).shape} does not match the events' "
+                             f"sensor {tuple(sensor_size)} (frame {exposure.frame})")
+
+    def edges(self, exposure: Exposure, next_start_us: Optional[int]) -> Optional[np.ndarray]:
+        """The bin edges of one exposure's counts: its instants, then the next start when later; None: too short."""
+        times = sample_times_us(exposure, self.samples)
+        if np.any(np.diff(times) <= 0):
+            return None
         reaches_next = next_start_us is not None and next_start_us > times[-1]
-        edges = np.append(times, next_start_us) if reaches_next else times
+        return np.append(times, next_start_us) if reaches_next else times
+
+    def skip(self, frame: np.ndarray, exposure: Exposure, sensor_size: Tuple[int, int]) -> None:
+        """An exposure with no edges (:meth:`edges` is None): it breaks the chain of pairs."""
+        self._check_frame(frame, exposure, sensor_size)
+        self._previous = None
+
+    def add_binned(self, frame: np.ndarray, exposure: Exposure, pos_bins: np.ndarray, neg_bins: np.ndarray,
+                   count_scale: float = 1.0) -> None:
+        """Add one exposure (in time order) from its counts binned at :meth:`edges`.
+
+        Args:
+            frame: [H, W, 3] or [H, W] linear blurry frame in [0, 1].
+            exposure: its exposure.
+            pos_bins, neg_bins: [len(edges) - 1, H, W] counts of the positive / negative events
+                (each +1) between consecutive edges (:func:`edygs_ns.events.accumulate.bin_chunks`).
+            count_scale: factor on the counts.
+        """
+        self._check_frame(frame, exposure, pos_bins.shape[1:])
         current = {
             "log": np.log(grey_level(frame) + LOG_EPS),
             "ok": _well_exposed(frame),
-            "pos": _cumulative_counts(events, edges, +1) * count_scale,
-            "neg": _cumulative_counts(events, edges, -1) * count_scale,
-            "reaches_next": reaches_next,
+            "pos": _cumulative(pos_bins) * count_scale,
+            "neg": _cumulative(neg_bins) * count_scale,
+            "reaches_next": len(pos_bins) == self.samples,  # samples instants + the next start
         }
         if self._previous is not None and self._previous["reaches_next"]:
             self._add_pair(self._previous, current)
@@ -387,9 +419,14 @@ def estimate_contrast(
         raise ValueError(f"estimate_contrast: {len(frames)} frames but {len(exposures)} exposures")
     source = ArrayEventSource(events) if isinstance(events, EventArray) else events
     accumulator = ContrastAccumulator(len(exposures))
-    for i, (frame, exposure) in enumerate(zip(frames, exposures)):
-        accumulator.add(frame, exposure, source.window(*read_span_us(exposures, i)), next_start_us(exposures, i),
-                        count_scale)
+    for i, (frame, exposure) in enumerate(zip(frames, exposures)):  # one chunked read per exposure
+        edges = accumulator.edges(exposure, next_start_us(exposures, i))
+        if edges is None:
+            accumulator.skip(frame, exposure, source.sensor_size)
+            continue
+        (pos, neg), _ = bin_chunks(source.chunks(*read_span_us(exposures, i)), [(edges, +1), (edges, -1)],
+                                   source.sensor_size)
+        accumulator.add_binned(frame, exposure, pos, neg, count_scale)
     return accumulator.estimate()
 
 

@@ -21,6 +21,10 @@ Formats (dispatch on the file suffix):
 :func:`open_event_source` gives windowed access for files larger than memory: HDF5 and .npy
 windows are found by binary search on the timestamps and only the window is read; the whole
 timestamp column is checked once, chunk by chunk, for order and NaN/inf when the file is opened.
+:meth:`EventSource.chunks` hands a window out at most READ_CHUNK_EVENTS events at a time (each
+chunk checked as it is read, errors naming the file and the event's index), which is how
+edygs-process bins events: its memory does not grow with the file or with one exposure's events
+(benchmarks/event_memory.py).
 
 Every reader takes a ``time_unit`` (:mod:`edygs_ns.events.units`: s, ms, us, ns); None is the
 format's documented unit (:func:`native_time_unit`).
@@ -33,7 +37,7 @@ import warnings
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -72,6 +76,10 @@ TXT_COLUMNS = 4
 TICKS_PER_US = {"us": 1, "ns": 1000}
 #: Events per chunk of the whole-file order and NaN/inf scan of a windowed source.
 SCAN_CHUNK_EVENTS = 1 << 22
+#: Most events :meth:`EventSource.chunks` hands out at once: the unit binning works in, so memory
+#: is bounded by it, not by the file or by how many events one exposure window holds (a read and
+#: its checks take ~100 bytes per event: ~100 MiB at 2^20; see benchmarks/event_memory.py).
+READ_CHUNK_EVENTS = 1 << 20
 #: aedat frame formats and the number of channels kept (RGBA drops alpha); aedat >= 2.3 yields
 #: 16-bit grey frames as "I;16" (uint16 codes, e.g. a DAVIS's 10-bit ADC values).
 AEDAT_FRAME_FORMATS = {"L": 1, "RGB": 3, "RGBA": 3, "I;16": 1}
@@ -140,6 +148,15 @@ class EventSource(ABC):
     def read_all(self) -> EventArray:
         """Every event of the source, validated as a whole."""
 
+    def chunks(self, t_start_us: int, t_end_us: int, max_events: int = READ_CHUNK_EVENTS) -> Iterator[EventArray]:
+        """The events with t_start_us <= t < t_end_us, in time order, at most ``max_events`` at a time.
+
+        This default cuts :meth:`window` (sources in memory); file sources read each chunk alone.
+        """
+        events = self.window(t_start_us, t_end_us)
+        for i0 in range(0, len(events), _chunk_size(max_events)):
+            yield events.select(slice(i0, i0 + _chunk_size(max_events)))
+
     def close(self) -> None:
         """Release the underlying file (no-op for in-memory sources)."""
 
@@ -173,6 +190,11 @@ class ArrayEventSource(EventSource):
 
     def read_all(self) -> EventArray:
         return self.events
+
+
+def _chunk_size(max_events: int) -> int:
+    """A chunk length of at least one event (``max_events`` <= 0: unlimited)."""
+    return int(max_events) if max_events > 0 else np.iinfo(np.int64).max
 
 
 def _first_index_at_or_after(
@@ -339,7 +361,7 @@ class _ColumnEventSource(EventSource):
             raise self._no_events()
         return self._t_at(0) + self._t_offset, self._t_at(self._n - 1) + self._t_offset
 
-    def _read(self, i0: int, i1: int, source: str) -> EventArray:
+    def _read(self, i0: int, i1: int, source: str, index_offset: int = 0) -> EventArray:
         raw = {k: self._slice(k, i0, i1) for k in EVENT_FIELDS}
         t = ticks_to_us(raw["t"], self._unit)  # NaN stays NaN: validate_events names it
         t = t + self._t_offset if t.dtype.kind == "f" else t.astype(np.int64) + self._t_offset
@@ -352,13 +374,28 @@ class _ColumnEventSource(EventSource):
             inside = (x >= 0) & (x < width) & (y >= 0) & (y < height)
             if not inside.all():
                 x, y, t, p = x[inside], y[inside], t[inside], p[inside]
-        return validate_events(x, y, t, p, self.sensor_size, source)
+                index_offset = 0  # entries dropped: positions no longer the file's
+        return validate_events(x, y, t, p, self.sensor_size, source, index_offset)
 
     def window(self, t_start_us: int, t_end_us: int) -> EventArray:
         if t_end_us <= t_start_us:
             return EventArray.empty(self.sensor_size)
         i0, i1 = self._index(t_start_us), self._index(t_end_us)
-        return self._read(i0, max(i0, i1), f"{self.name} (events {i0}..{i1})")
+        return self._read(i0, max(i0, i1), f"{self.name} (events {i0}..{i1})", index_offset=i0)
+
+    def chunks(self, t_start_us: int, t_end_us: int, max_events: int = READ_CHUNK_EVENTS) -> Iterator[EventArray]:
+        """The window's events read ``max_events`` at a time (binary search for its ends, then slices).
+
+        Each chunk is checked as it is read (coordinates inside the sensor, polarity, order); an
+        error names the file and the event's index in it.
+        """
+        if t_end_us <= t_start_us:
+            return
+        i0, i1 = self._index(t_start_us), self._index(t_end_us)
+        step = _chunk_size(max_events)
+        for a in range(i0, i1, step):
+            b = min(a + step, i1)
+            yield self._read(a, b, f"{self.name} (events {a}..{b})", index_offset=a)
 
     def read_all(self) -> EventArray:
         return self._read(0, self._n, self.name)

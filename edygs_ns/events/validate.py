@@ -35,7 +35,7 @@ def check_sensor_size(sensor_size: Sequence[int], source: str) -> Tuple[int, int
     return int(values[0]), int(values[1])
 
 
-def _as_integer_column(values: np.ndarray, name: str, source: str) -> np.ndarray:
+def _as_integer_column(values: np.ndarray, name: str, source: str, index_offset: int = 0) -> np.ndarray:
     """Cast a numeric column to int64, refusing non-finite or fractional values."""
     if values.dtype.kind == "b":
         return values.astype(np.int64)
@@ -47,7 +47,7 @@ def _as_integer_column(values: np.ndarray, name: str, source: str) -> np.ndarray
             first = int(np.flatnonzero(bad)[0])
             raise ValueError(
                 f"{source}: event field {name!r} holds {int(bad.sum())} NaN/inf value(s) "
-                f"(first at event index {first}: {values[first]})"
+                f"(first at event index {index_offset + first}: {values[first]})"
             )
         if name in ("x", "y"):
             frac = values != np.round(values)
@@ -55,7 +55,7 @@ def _as_integer_column(values: np.ndarray, name: str, source: str) -> np.ndarray
                 first = int(np.flatnonzero(frac)[0])
                 raise ValueError(
                     f"{source}: event field {name!r} holds {int(frac.sum())} non-integer value(s) "
-                    f"(first at event index {first}: {values[first]})"
+                    f"(first at event index {index_offset + first}: {values[first]})"
                 )
         if name == "p":
             return values
@@ -63,7 +63,7 @@ def _as_integer_column(values: np.ndarray, name: str, source: str) -> np.ndarray
     return values.astype(np.int64, copy=False)
 
 
-def _polarity_to_signed(p: np.ndarray, source: str) -> np.ndarray:
+def _polarity_to_signed(p: np.ndarray, source: str, index_offset: int = 0) -> np.ndarray:
     """Map polarity in {0, 1} or {-1, +1} (any numeric dtype) to int8 {-1, +1}."""
     is_one = p == 1
     if (is_one | (p == 0)).all():
@@ -72,9 +72,11 @@ def _polarity_to_signed(p: np.ndarray, source: str) -> np.ndarray:
         return p.astype(np.int8)
     found = np.unique(p).tolist()
     offending = [v for v in found if v not in (-1, 0, 1)] or found
+    bad = np.isin(p, offending) if offending != found else (p == -1)
+    where = f"; first at event index {index_offset + int(np.flatnonzero(bad)[0])}" if bad.any() else ""
     raise ValueError(
         f"{source}: polarity must be all in {{0, 1}} or all in {{-1, +1}}; found values "
-        f"{found[: 2 * MAX_QUOTED]} (offending: {offending[:MAX_QUOTED]})"
+        f"{found[: 2 * MAX_QUOTED]} (offending: {offending[:MAX_QUOTED]}{where})"
     )
 
 
@@ -85,6 +87,7 @@ def validate_events(
     p: np.ndarray,
     sensor_size: Sequence[int],
     source: str,
+    index_offset: int = 0,
 ) -> EventArray:
     """Check raw event columns and convert them into an EventArray.
 
@@ -95,6 +98,8 @@ def validate_events(
         p: [E] polarity, all in {0, 1} (0 becomes -1) or all in {-1, +1}.
         sensor_size: (height, width) in pixels.
         source: the file the columns came from, quoted in every error message.
+        index_offset: position in the file of the first entry (a chunk read from the middle of a
+            file): the event indices quoted in messages are the file's.
 
     Returns:
         EventArray with x, y int32, t int64 (µs), p int8 in {-1, +1}.
@@ -112,17 +117,17 @@ def validate_events(
     if len(set(lengths.values())) != 1:
         raise ValueError(f"{source}: event fields have mismatched lengths {lengths}")
 
-    xi = _as_integer_column(columns["x"], "x", source)
-    yi = _as_integer_column(columns["y"], "y", source)
-    ti = _as_integer_column(columns["t"], "t", source)
-    pi = _as_integer_column(columns["p"], "p", source)
+    xi = _as_integer_column(columns["x"], "x", source, index_offset)
+    yi = _as_integer_column(columns["y"], "y", source, index_offset)
+    ti = _as_integer_column(columns["t"], "t", source, index_offset)
+    pi = _as_integer_column(columns["p"], "p", source, index_offset)
 
     outside = (xi < 0) | (xi >= width) | (yi < 0) | (yi >= height)
     if outside.any():
         first = int(np.flatnonzero(outside)[0])
         raise ValueError(
             f"{source}: {int(outside.sum())} of {len(xi)} events lie outside the sensor "
-            f"(height={height}, width={width}); e.g. event {first} at x={xi[first]}, y={yi[first]}. "
+            f"(height={height}, width={width}); e.g. event {index_offset + first} at x={xi[first]}, y={yi[first]}. "
             "Is sensor_size right?"
         )
     decreases = np.diff(ti) < 0
@@ -130,9 +135,9 @@ def validate_events(
         first = int(np.flatnonzero(decreases)[0])
         raise ValueError(
             f"{source}: timestamps are not monotonic: t decreases {int(decreases.sum())} time(s) "
-            f"(first between event {first} and {first + 1}: {ti[first]} -> {ti[first + 1]} µs)"
+            f"(first between event {index_offset + first} and {index_offset + first + 1}: {ti[first]} -> {ti[first + 1]} µs)"
         )
-    p_signed = _polarity_to_signed(pi, source)
+    p_signed = _polarity_to_signed(pi, source, index_offset)
     return EventArray(
         x=xi.astype(np.int32),
         y=yi.astype(np.int32),

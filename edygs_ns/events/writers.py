@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Union
+from typing import Any, Optional, Tuple, Union
 
 import numpy as np
 
@@ -85,6 +85,79 @@ def write_events_h5(path: PathLike, events: EventArray, overwrite: bool = False)
         f.attrs["sensor_size"] = np.asarray(events.sensor_size, dtype=np.int64)
     os.replace(tmp, path)
     return path
+
+
+class H5EventWriter:
+    """Write an HDF5 event file piece by piece (files larger than memory), in write_events_h5's layout.
+
+    Events are appended in time order; the file is written under ``<path>.partial`` and moved into
+    place when the writer closes without an error (an error or interruption removes the partial
+    file and leaves ``path`` untouched).
+
+    Args:
+        path: destination .h5 file.
+        sensor_size: (height, width) of every event appended.
+        overwrite: replace ``path`` if it exists.
+
+    Raises:
+        FileExistsError: ``path`` exists and ``overwrite`` is False.
+    """
+
+    def __init__(self, path: PathLike, sensor_size: Tuple[int, int], overwrite: bool = False) -> None:
+        import h5py
+
+        self.path = Path(path)
+        _refuse_overwrite(self.path, overwrite)
+        self.sensor_size = (int(sensor_size[0]), int(sensor_size[1]))
+        self._tmp = self.path.with_name(self.path.name + ".partial")
+        coord = _coordinate_dtype(EventArray.empty(self.sensor_size))
+        self._dtypes = {"x": coord, "y": coord, "t": np.dtype(np.int64), "p": np.dtype(np.int8)}
+        self._file = h5py.File(self._tmp, "w")
+        for name, dtype in self._dtypes.items():
+            self._file.create_dataset(name, shape=(0,), dtype=dtype, maxshape=(None,), chunks=(H5_CHUNK_EVENTS,),
+                                      compression="gzip", compression_opts=H5_GZIP_LEVEL, shuffle=True)
+        self._file.attrs["sensor_size"] = np.asarray(self.sensor_size, dtype=np.int64)
+        self._n = 0
+        self._last_t: Optional[int] = None
+
+    def __len__(self) -> int:
+        return self._n
+
+    def append(self, events: EventArray) -> None:
+        """Add events (sorted by t, starting no earlier than the last one appended).
+
+        Raises:
+            ValueError: another sensor size, or events earlier than those already written.
+        """
+        if events.sensor_size != self.sensor_size:
+            raise ValueError(f"{self.path}: appended events are from a {events.sensor_size} sensor, not {self.sensor_size}")
+        if not len(events):
+            return
+        if self._last_t is not None and int(events.t[0]) < self._last_t:
+            raise ValueError(f"{self.path}: appended events start at t = {int(events.t[0])} µs, before the last one "
+                             f"written ({self._last_t} µs); append in time order")
+        n0, n1 = self._n, self._n + len(events)
+        for name, dtype in self._dtypes.items():
+            dataset = self._file[name]
+            dataset.resize((n1,))
+            dataset[n0:n1] = getattr(events, name).astype(dtype, copy=False)
+        self._n, self._last_t = n1, int(events.t[-1])
+
+    def close(self, keep: bool = True) -> Path:
+        """Finish the file and move it into place (``keep=False``: discard it)."""
+        if self._file:
+            self._file.close()
+        if keep:
+            os.replace(self._tmp, self.path)
+        elif self._tmp.exists():
+            self._tmp.unlink()
+        return self.path
+
+    def __enter__(self) -> "H5EventWriter":
+        return self
+
+    def __exit__(self, exc_type: Any, *exc: Any) -> None:
+        self.close(keep=exc_type is None)
 
 
 def write_events_npz(path: PathLike, events: EventArray, overwrite: bool = False) -> Path:

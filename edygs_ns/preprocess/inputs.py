@@ -45,7 +45,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Literal, Optional, Sequence, Tuple
+from typing import Iterator, List, Literal, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -53,7 +53,9 @@ import numpy as np
 from edygs_ns.events.accumulate import latent_times_us
 from edygs_ns.events.coverage import measure_coverage, resolve_coverage
 from edygs_ns.events.exposures import Exposure, check_exposure_sequence, read_exposures
-from edygs_ns.events.readers import ArrayEventSource, EventSource, native_time_unit, open_event_source, read_aedat4
+from edygs_ns.events.readers import (
+    READ_CHUNK_EVENTS, ArrayEventSource, EventSource, native_time_unit, open_event_source, read_aedat4,
+)
 from edygs_ns.events.types import EventArray
 from edygs_ns.events.units import AUTO_UNIT, US_PER_TICK, detect_time_unit
 from edygs_ns.preprocess.frames import frames_to_rgb8, read_frames, read_raw_image, to_rgb8  # noqa: F401 (re-exported)
@@ -297,6 +299,9 @@ class DownscaledEventSource(EventSource):
 
     def window(self, t_start_us: int, t_end_us: int) -> EventArray:
         return self._scale(self.base.window(t_start_us, t_end_us))
+
+    def chunks(self, t_start_us: int, t_end_us: int, max_events: int = READ_CHUNK_EVENTS) -> Iterator[EventArray]:
+        return (self._scale(chunk) for chunk in self.base.chunks(t_start_us, t_end_us, max_events))
 
     def read_all(self) -> EventArray:
         return self._scale(self.base.read_all())

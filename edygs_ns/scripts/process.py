@@ -40,12 +40,12 @@ import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 from typing_extensions import Annotated
 
-from edygs_ns.events.accumulate import exposure_bins, latent_times_us
+from edygs_ns.events.accumulate import latent_times_us
 from edygs_ns.events.color import decode_to_linear
-from edygs_ns.events.contrast import ContrastAccumulator, ThetaChoice, choose_theta, next_start_us, read_span_us
+from edygs_ns.events.contrast import ContrastAccumulator, ThetaChoice, choose_theta
 from edygs_ns.events.edi import EdiConfig, edi_from_frame
 from edygs_ns.events.exposures import Exposure, read_exposures
-from edygs_ns.events.readers import ArrayEventSource
+from edygs_ns.events.stream import bin_exposure
 from edygs_ns.preprocess.colmap import ColmapConfig, ColmapResult, registration_message, run_colmap, with_calibration
 from edygs_ns.data.layouts.common import Intrinsics
 from edygs_ns.preprocess.inputs import Capture, InputConfig, calibration_path, load_capture, read_image
@@ -309,11 +309,9 @@ class Pipeline:
             for i, exposure in enumerate(exposures):
                 if capture.binned_events is not None:
                     bins = capture.binned_events[i]
-                else:  # one read per exposure, up to the next one: the EDI bins and the Θ fit share it
-                    window = ArrayEventSource(capture.events.window(*read_span_us(exposures, i)), capture.events.name)
-                    bins = exposure_bins(window, [exposure], self.k)[0] * meta["event_count_scale"]
+                else:  # one chunked read per exposure, up to the next one: the EDI bins and the Θ fit share it
                     frame = decode_to_linear(read_rgb_png(blurry[i]) / UINT8_MAX, self.config.edi.color_space)
-                    contrast.add(frame, exposure, window.events, next_start_us(exposures, i), meta["event_count_scale"])
+                    bins = bin_exposure(capture.events, exposures, i, self.k, meta["event_count_scale"], contrast, frame)
                 maps[i] = bins
                 total_events += float(np.abs(bins).sum())
                 advance()
