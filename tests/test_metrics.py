@@ -11,7 +11,8 @@ import torch
 
 from edygs_ns.eval import lpips_loader
 from edygs_ns.eval.lpips_loader import LpipsUnavailable, backbone_filename, load_lpips, lpips_or_none
-from edygs_ns.eval.metrics import MetricSet, mask_iou, psnr, ssim, ssim_map
+from edygs_ns.eval.metrics import MetricSet
+from edygs_ns.losses.metrics import mask_iou, psnr, ssim, ssim_map
 
 SIZE = 32
 

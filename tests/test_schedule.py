@@ -1,6 +1,6 @@
 """The phase switch: which phase each step is in, what trains, which losses count."""
 
-from edygs_ns.configs.ablations import ABLATIONS, apply_ablation
+from edygs_ns.model.ablations import ABLATIONS, apply_ablation
 from edygs_ns.model.edygs_model import EdygsModelConfig
 from edygs_ns.training.schedule import (
     CAMERA_GROUP, DEFORMATION_GROUP, MASK_GROUP, Phase, PhaseSchedule, is_active, is_trainable, phase_at,

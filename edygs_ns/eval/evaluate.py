@@ -51,7 +51,7 @@ from torch import Tensor
 from edygs_ns.io.images import UINT8_MAX, read_rgb_uint8
 from edygs_ns.eval.figures import plot_psnr_over_time, plot_trajectories, save_grid
 from edygs_ns.eval.lpips_loader import LpipsMetric, lpips_or_none
-from edygs_ns.eval.metrics import MetricSet, mask_iou, psnr, ssim
+from edygs_ns.eval.metrics import MetricSet
 from edygs_ns.eval.novel_pose_fit import NovelPoseFitConfig, fit_camera_pose
 from edygs_ns.eval.pose_alignment import (
     INITIAL_POSES_SPLIT,
@@ -70,6 +70,7 @@ from edygs_ns.eval.pose_alignment import (
 from edygs_ns.eval.report import DEFAULT_NOTES, markdown_table, write_metrics
 from edygs_ns.eval.trajectory import rotation_angle
 from edygs_ns.geometry import align_poses, to_homogeneous
+from edygs_ns.losses.metrics import mask_iou, psnr, ssim
 
 EvalSplit = Literal["input", "novel", "both"]
 

@@ -133,7 +133,7 @@ class EdygsModelConfig(ModelConfig):
     losses only; "full": with the blur loss); None: as given"""
 
     def __post_init__(self) -> None:
-        from edygs_ns.configs.ablations import apply_ablation
+        from edygs_ns.model.ablations import apply_ablation
 
         apply_ablation(self)
 
@@ -537,7 +537,7 @@ class EdygsModel(SplatExportView):
 
     # ------------------------------------------------------------ evaluation
     def get_image_metrics_and_images(self, outputs, batch) -> Tuple[Dict[str, float], Dict[str, Tensor]]:
-        from edygs_ns.eval.metrics import mask_iou, psnr, ssim
+        from edygs_ns.losses.metrics import mask_iou, psnr, ssim
 
         gt = self._as_float_image(batch["image"], self.device)[..., :3]
         pred = outputs["rgb"]
