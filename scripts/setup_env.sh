@@ -30,3 +30,11 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   echo "[setup] install took $(( $(date +%s) - start )) s"
   touch "$stamp"
 fi
+# CUDA: torch derives CUDA_HOME from the folder above nvcc, wrong where nvcc is a link or wrapper
+# (/usr/local/bin/nvcc -> /usr/local); gsplat's build then misses cuda_runtime.h. edygs sets
+# CUDA_HOME itself before gsplat builds; the venv's activate script exports it for other tools.
+.venv/bin/python -m edygs_ns.cuda_setup || true
+cuda_home="$(.venv/bin/python -m edygs_ns.cuda_setup --cuda-home 2>/dev/null || true)"
+if [ -n "$cuda_home" ] && ! grep -q "edygs: CUDA_HOME" .venv/bin/activate; then
+  printf '\nexport CUDA_HOME="${CUDA_HOME:-%s}"  # edygs: CUDA_HOME (scripts/setup_env.sh)\n' "$cuda_home" >> .venv/bin/activate
+fi

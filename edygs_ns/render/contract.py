@@ -92,10 +92,20 @@ def select_backend(device: torch.device, force: Optional[str] = None) -> RasterB
     """The backend for tensors on `device`: gsplat on CUDA, the torch reference elsewhere.
 
     Args:
-        force: "torch" or "gsplat" to override the choice (config field `rasterizer`).
+        force: "torch" or "gsplat" to override the choice (config field `rasterizer`); "torch"
+            runs the torch rasteriser on any device, CUDA tensors included.
+
+    Raises:
+        GsplatUnavailableError: gsplat on CUDA, and its kernels are neither built nor buildable
+            (one line naming the fix: ``edygs-doctor --build-gsplat`` or ``rasterizer torch``);
+            checked once per process, before the first gsplat call.
     """
-    name = force if force not in (None, "auto") else ("gsplat" if device.type == "cuda" else "torch")
+    name = force if force not in (None, "auto") else ("gsplat" if torch.device(device).type == "cuda" else "torch")
     if name == "gsplat":
+        if torch.device(device).type == "cuda":
+            from edygs_ns.cuda_setup import require_gsplat_kernels
+
+            require_gsplat_kernels()
         from edygs_ns.render.gsplat_backend import rasterize_gsplat
 
         return rasterize_gsplat
