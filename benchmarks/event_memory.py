@@ -17,8 +17,9 @@
    - ``Θ fit``: :meth:`ContrastAccumulator.estimate` and :func:`choose_theta`.
 
 Each stage's peak resident memory is measured inside the child (the kernel's VmHWM, reset before
-the stage through /proc/self/clear_refs), and the whole child's peak by the parent (``wait4``'s
-ru_maxrss). Events/s: the events a stage goes through (every event for ``read``, those inside
+the stage through /proc/self/clear_refs); the child's peak is the largest of them (the reset also
+resets the ru_maxrss that ``wait4`` reports, so that is used only for the writing child, which
+resets nothing). Events/s: the events a stage goes through (every event for ``read``, those inside
 the exposures' read spans for binning) over its wall time. The files are deleted at the end
 unless ``--keep``.
 """
@@ -167,7 +168,7 @@ class _Counting:
 
 
 def _run_child(args: List[str]) -> Dict:
-    """Run this script as a child; its JSON result plus its peak RSS (wait4's ru_maxrss, KiB)."""
+    """Run this script as a child; its JSON result plus wait4's ru_maxrss (KiB; since its last peak reset)."""
     out_path = Path(args[args.index("--result") + 1])
     proc = subprocess.Popen([sys.executable, __file__] + args)
     _, status, usage = os.wait4(proc.pid, 0)
@@ -228,12 +229,15 @@ def main() -> None:
                                           "--result", str(args.dir / f"process_{n_exp}_{chunk}.json")])
             label = f"read chunks of {chunk:,} events" if chunk > 0 else "each exposure's whole window at once (old route)"
             per_window = n_events / n_exp / 2 ** 20
-            print(f"\nprocess, {n_exp} exposures (~{per_window:.1f} Mi events per read span), {label}: child peak RSS {_mib(result['child_max_rss_kib'])} "
-                  f"(after imports {_mib(result['baseline_rss_kib'])})")
-            print(f"  {'stage':<66} {'seconds':>8} {'M events/s':>11} {'peak RSS':>10}")
+            base = result["baseline_rss_kib"]
+            peak = max(s["peak_kib"] for s in result["stages"])
+            print(f"\nprocess, {n_exp} exposures (~{per_window:.1f} Mi events per read span), {label}: peak RSS "
+                  f"{_mib(peak)}, {_mib(peak - base)} above the {_mib(base)} after imports (torch, nerfstudio)")
+            print(f"  {'stage':<66} {'seconds':>8} {'M events/s':>11} {'peak RSS':>10} {'- imports':>10}")
             for s in result["stages"]:
                 rate = f"{s['events'] / s['seconds'] / 1e6:.2f}" if s["events"] else "-"
-                print(f"  {s['stage']:<66} {s['seconds']:8.1f} {rate:>11} {_mib(s['peak_kib']):>10}")
+                print(f"  {s['stage']:<66} {s['seconds']:8.1f} {rate:>11} {_mib(s['peak_kib']):>10} "
+                      f"{_mib(s['peak_kib'] - base):>10}")
             print(f"  {result['theta_line']}", flush=True)
     finally:
         if not args.keep:
