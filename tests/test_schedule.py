@@ -1,5 +1,7 @@
 """The phase switch: which phase each step is in, what trains, which losses count."""
 
+import pytest
+
 from edygs_ns.model.ablations import ABLATIONS, apply_ablation
 from edygs_ns.model.edygs_model import EdygsModelConfig
 from edygs_ns.training.schedule import (
@@ -45,3 +47,41 @@ def test_ablation_presets_set_switches_and_skip_warmup_without_edi():
     assert paper == {k: v for k, v in ABLATIONS["full"].items() if k != "use_blur_loss"}
     plain = EdygsModelConfig(use_event_loss=False)
     assert plain.use_event_loss is False and plain.ablation is None
+
+
+def test_a_misspelt_loss_name_raises() -> None:
+    from edygs_ns.losses.names import LossName
+    from edygs_ns.training.schedule import is_active
+
+    assert is_active(LossName.EVENT, Phase.STATIC) and is_active("event", Phase.STATIC)
+    with pytest.raises(ValueError, match="evnt"):
+        is_active("evnt", Phase.STATIC)
+
+
+def test_every_loss_name_the_model_uses_is_a_loss_term() -> None:
+    """The model's is_active(...) names and loss-dict keys are LossName values (a typo would never fire)."""
+    import ast
+    from pathlib import Path
+
+    import edygs_ns.model.edygs_model as model_module
+    from edygs_ns.losses.names import LossName
+
+    tree = ast.parse(Path(model_module.__file__).read_text(encoding="utf-8"))
+    asked = {node.args[0].value for node in ast.walk(tree) if isinstance(node, ast.Call)
+             and getattr(node.func, "id", None) == "is_active" and isinstance(node.args[0], ast.Constant)}
+    keyed = {node.slice.value for node in ast.walk(tree) if isinstance(node, ast.Subscript)
+             and getattr(node.value, "id", None) == "losses" and isinstance(getattr(node.slice, "value", None), str)}
+    names = {name.value for name in LossName}
+    assert asked and asked <= names, asked - names
+    assert keyed - {"none"} == asked
+
+
+def test_parameter_groups_come_from_the_gaussian_attributes() -> None:
+    from edygs_ns.configs.method_configs import LEARNING_RATES, PARAMETER_GROUPS, optimizer_configs
+    from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES
+    from edygs_ns.training.schedule import GAUSSIAN_GROUPS, MASK_GROUP, TRAINABLE
+
+    assert PARAMETER_GROUPS[: len(GAUSSIAN_ATTRIBUTES)] == GAUSSIAN_ATTRIBUTES
+    assert set(optimizer_configs()) == set(PARAMETER_GROUPS) == set(LEARNING_RATES)
+    assert GAUSSIAN_GROUPS | {MASK_GROUP} == set(GAUSSIAN_ATTRIBUTES)
+    assert set().union(*TRAINABLE.values()) == set(PARAMETER_GROUPS)

@@ -8,6 +8,7 @@ edi-events,edi-events-pose,paper,full}`` (``paper``: EDyGS without our blur loss
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Dict, Optional, Tuple
 
 from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
@@ -21,7 +22,8 @@ from edygs_ns.configs.run_length import CPU_DEFORMATION, CPU_ITERATIONS, shape_t
 from edygs_ns.data.datamanager import EdygsDataManagerConfig
 from edygs_ns.data.dataparser import EdygsDataParserConfig
 from edygs_ns.model.edygs_model import EdygsModelConfig
-from edygs_ns.training.schedule import PhaseSchedule
+from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES
+from edygs_ns.training.schedule import CAMERA_GROUP, DEFORMATION_GROUP, MASK_GROUP, RIGID_GROUP, PhaseSchedule
 
 allow_nerfstudio_checkpoints()
 
@@ -36,20 +38,30 @@ def _adam(lr: float, lr_final: float | None = None, max_steps: int = MAX_ITERATI
     return {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15), "scheduler": scheduler}
 
 
+#: Adam learning rate per parameter group: (initial, final of an exponential decay or None for constant).
+LEARNING_RATES: Dict[str, Tuple[float, Optional[float]]] = {
+    "means": (1.6e-4, 1.6e-6),
+    "features_dc": (0.0025, None),
+    "features_rest": (0.0025 / 20, None),
+    "opacities": (0.05, None),
+    "scales": (0.005, None),
+    "quats": (0.001, None),
+    MASK_GROUP: (0.005, None),
+    DEFORMATION_GROUP: (8e-4, 1.6e-6),
+    RIGID_GROUP: (1e-3, None),
+    CAMERA_GROUP: (1e-4, 1e-6),
+}
+#: the parameter groups: one per Gaussian attribute, then the deformation MLP, the rigid motions and the poses.
+PARAMETER_GROUPS: Tuple[str, ...] = GAUSSIAN_ATTRIBUTES + (DEFORMATION_GROUP, RIGID_GROUP, CAMERA_GROUP)
+
+
 def optimizer_configs(max_steps: int = MAX_ITERATIONS) -> dict:
-    """One entry per parameter group (the names of model.gaussians.GAUSSIAN_ATTRIBUTES + MLP + poses)."""
-    return {
-        "means": _adam(1.6e-4, 1.6e-6, max_steps),
-        "features_dc": _adam(0.0025),
-        "features_rest": _adam(0.0025 / 20),
-        "opacities": _adam(0.05),
-        "scales": _adam(0.005),
-        "quats": _adam(0.001),
-        "mask_logit": _adam(0.005),
-        "deformation": _adam(8e-4, 1.6e-6, max_steps),
-        "rigid_motion": _adam(1e-3),
-        "camera_opt": _adam(1e-4, 1e-6, max_steps),
-    }
+    """One entry per parameter group (PARAMETER_GROUPS, learning rates from LEARNING_RATES).
+
+    Raises:
+        KeyError: a parameter group has no learning rate.
+    """
+    return {name: _adam(*LEARNING_RATES[name], max_steps=max_steps) for name in PARAMETER_GROUPS}
 
 
 def edygs_trainer_config(method_name: str = "edygs") -> TrainerConfig:

@@ -15,10 +15,13 @@ from jaxtyping import Float
 from torch import Tensor, nn
 
 from edygs_ns.model.appearance import SH_C0, SH_OFFSET
+from edygs_ns.io.images import UINT8_MAX
 
+#: the motion-mask logit of each Gaussian (its own parameter group: it trains from the static phase).
+MASK_ATTRIBUTE = "mask_logit"
 #: every per-Gaussian tensor; the mask logit is densified with its Gaussian like the others.
 GAUSSIAN_ATTRIBUTES: Tuple[str, ...] = (
-    "means", "scales", "quats", "features_dc", "features_rest", "opacities", "mask_logit",
+    "means", "scales", "quats", "features_dc", "features_rest", "opacities", MASK_ATTRIBUTE,
 )
 #: neighbours used for the initial scale (mean distance), as in 3DGS.
 INIT_NEIGHBOURS = 3
@@ -81,7 +84,7 @@ def gaussian_tensors(
         "features_dc": features[:, 0].contiguous(),
         "features_rest": features[:, 1:].contiguous(),
         "opacities": torch.full((n, 1), logit(opacity), device=points.device),
-        "mask_logit": torch.full((n, 1), logit(mask), device=points.device),
+        MASK_ATTRIBUTE: torch.full((n, 1), logit(mask), device=points.device),
     }
 
 
@@ -98,7 +101,7 @@ def init_gaussians(
     n = points.shape[0]
     generator = torch.Generator().manual_seed(seed)
     if colors is not None and len(colors) == n:
-        rgb = colors.float() / 255.0 if colors.dtype == torch.uint8 else colors.float()
+        rgb = colors.float() / UINT8_MAX if colors.dtype == torch.uint8 else colors.float()
     else:
         rgb = torch.rand(n, 3, generator=generator)
     quats = random_unit_quats(n, generator)

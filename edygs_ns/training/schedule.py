@@ -14,7 +14,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import Enum
-from typing import Dict, FrozenSet, Optional, Tuple
+from typing import Dict, FrozenSet, Optional, Tuple, Union
+
+from edygs_ns.losses.names import LossName, loss_name
+from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES, MASK_ATTRIBUTE
 
 
 class Phase(str, Enum):
@@ -23,9 +26,10 @@ class Phase(str, Enum):
     DYNAMIC = "dynamic"
 
 
-#: parameter-group names (also the optimizer keys of the method config).
-GAUSSIAN_GROUPS: FrozenSet[str] = frozenset({"means", "scales", "quats", "features_dc", "features_rest", "opacities"})
-MASK_GROUP = "mask_logit"
+#: parameter-group names (also the optimizer keys of the method config): one per Gaussian
+#: attribute (the mask logit on its own), then the deformation MLP, the rigid motions and the poses.
+MASK_GROUP = MASK_ATTRIBUTE
+GAUSSIAN_GROUPS: FrozenSet[str] = frozenset(GAUSSIAN_ATTRIBUTES) - {MASK_GROUP}
 CAMERA_GROUP = "camera_opt"
 DEFORMATION_GROUP = "deformation"
 RIGID_GROUP = "rigid_motion"
@@ -37,10 +41,10 @@ TRAINABLE: Dict[Phase, FrozenSet[str]] = {
 }
 
 #: loss terms that are active in each phase (their weights live in the model config).
-ACTIVE_LOSSES: Dict[Phase, FrozenSet[str]] = {
-    Phase.POSE_INIT: frozenset({"edi"}),
-    Phase.STATIC: frozenset({"edi", "edi_static", "event", "blur", "mask_l1"}),
-    Phase.DYNAMIC: frozenset({"edi", "event", "blur", "mask_consistency", "motion"}),
+ACTIVE_LOSSES: Dict[Phase, FrozenSet[LossName]] = {
+    Phase.POSE_INIT: frozenset({LossName.EDI}),
+    Phase.STATIC: frozenset({LossName.EDI, LossName.EDI_STATIC, LossName.EVENT, LossName.BLUR, LossName.MASK_L1}),
+    Phase.DYNAMIC: frozenset({LossName.EDI, LossName.EVENT, LossName.BLUR, LossName.MASK_CONSISTENCY, LossName.MOTION}),
 }
 
 
@@ -81,9 +85,13 @@ def is_trainable(group: str, phase: Phase) -> bool:
     return group in TRAINABLE[phase]
 
 
-def is_active(loss: str, phase: Phase) -> bool:
-    """Whether loss term ``loss`` counts in ``phase``."""
-    return loss in ACTIVE_LOSSES[phase]
+def is_active(loss: Union[str, LossName], phase: Phase) -> bool:
+    """Whether loss term ``loss`` counts in ``phase``.
+
+    Raises:
+        ValueError: ``loss`` names no loss term (:class:`~edygs_ns.losses.names.LossName`).
+    """
+    return loss_name(loss) in ACTIVE_LOSSES[phase]
 
 
 def time_window(step: int, schedule: PhaseSchedule, centre: float) -> Optional[Tuple[float, float]]:
