@@ -24,7 +24,7 @@ from edygs_ns.events.readers import read_events
 from edygs_ns.events.types import EventArray
 from edygs_ns.preprocess.inputs import InputConfig
 from edygs_ns.scripts.process import ProcessConfig, ProcessEdiConfig, process
-from edygs_ns.scripts.synth import SynthConfig, write_synthetic_scene
+from edygs_ns.sim.writer import SynthConfig, write_synthetic_scene
 
 #: Tiny simulated captures (a few seconds each); 9 sub-frames per blurry frame, the default.
 TINY = dict(width=64, height=48, n_frames=6, supersample=1, sim_steps_per_exposure=12, novel_stride=6)

@@ -25,7 +25,7 @@ from edygs_ns.preprocess.steps import STEP_RECORD_NAME
 from edygs_ns.io.ply import read_ply_points
 from edygs_ns.preprocess.writer import Undistorter, complete_poses
 from edygs_ns.scripts.process import ProcessConfig, RegistrationError, entrypoint, process
-from edygs_ns.scripts.synth import SynthConfig, write_synthetic_scene
+from edygs_ns.sim.writer import SynthConfig, write_synthetic_scene
 
 #: The tiny synthetic capture shared by the tests (COLMAP registers all of its latents).
 TINY = dict(width=160, height=120, n_frames=6, k=3, supersample=1, sim_steps_per_exposure=8, n_subframes=5, novel_stride=3)

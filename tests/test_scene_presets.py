@@ -14,7 +14,8 @@ import pytest
 from PIL import Image
 from scipy import ndimage
 
-from edygs_ns.scripts.synth import SynthConfig, SynthWorld, build_world, entrypoint, write_synthetic_scene
+from edygs_ns.scripts.synth import entrypoint
+from edygs_ns.sim.writer import SynthConfig, SynthWorld, build_world, write_synthetic_scene
 from edygs_ns.sim.appearance import TextureAtlas
 from edygs_ns.sim.motions import ArmSegmentMotion, SquashStretchMotion
 from edygs_ns.sim.presets import SCENE_PRESETS, MovingObject

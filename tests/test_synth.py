@@ -14,7 +14,8 @@ import pytest
 from PIL import Image
 
 from edygs_ns.events.exposures import read_exposures
-from edygs_ns.scripts.synth import SynthConfig, SynthWorld, build_world, entrypoint, write_synthetic_scene
+from edygs_ns.scripts.synth import entrypoint
+from edygs_ns.sim.writer import SynthConfig, SynthWorld, build_world, write_synthetic_scene
 from edygs_ns.sim.scene import render, to_grey
 from edygs_ns.sim.simulator import SimulatorConfig
 from edygs_ns.sim.trajectory import look_at

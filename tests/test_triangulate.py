@@ -18,7 +18,7 @@ from edygs_ns.preprocess.triangulate import TriangulationConfig, TriangulationEr
 from edygs_ns.io.images import write_rgb_png
 from edygs_ns.io.ply import read_ply_points
 from edygs_ns.scripts.process import ProcessConfig, process
-from edygs_ns.scripts.synth import SynthConfig, build_world, write_synthetic_scene
+from edygs_ns.sim.writer import SynthConfig, build_world, write_synthetic_scene
 
 #: A tiny synthetic capture (as test_process's): 6 frames x k=3 latents at 160x120.
 TINY = dict(width=160, height=120, n_frames=6, k=3, supersample=1, sim_steps_per_exposure=8, n_subframes=5, novel_stride=3)

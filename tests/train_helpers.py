@@ -11,7 +11,7 @@ from nerfstudio.engine.trainer import TrainerConfig
 
 from edygs_ns.configs.method_configs import edygs_trainer_config
 from edygs_ns.model.deformation import DeformationConfig
-from edygs_ns.scripts.synth import SynthConfig, write_synthetic_scene
+from edygs_ns.sim.writer import SynthConfig, write_synthetic_scene
 from edygs_ns.training.schedule import PhaseSchedule
 
 #: tiny scene: 48x36 pixels, 4 blurry frames, k = 5 -> 20 latents.
@@ -25,7 +25,7 @@ def room_points(config: SynthConfig, count: int = 4000, seed: int = 0):
     frame) with their shaded texture colours: [P, 3] float xyz, [P, 3] uint8 rgb. Stands in for
     the sparse points a pose-and-structure step would give, so a short test run starts from a
     sensible static model."""
-    from edygs_ns.scripts.synth import build_world
+    from edygs_ns.sim.writer import build_world
 
     scene = build_world(config).scene
     rng = np.random.default_rng(seed)
