@@ -37,7 +37,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from edygs_ns.configs.run_length import run_length_args
 from edygs_ns.eval.evaluate import evaluate_run
-from edygs_ns.scripts.process import ProcessConfig, process
+from edygs_ns.preprocess.pipeline import ProcessConfig, process
 from edygs_ns.sim.writer import SynthConfig, write_synthetic_scene
 
 #: (row label, ns-train method, ablation preset or None) in the paper's table order.

@@ -32,7 +32,7 @@ from edygs_ns.eval.trajectory import ate_rmse
 from edygs_ns.events.edi import EdiConfig
 from edygs_ns.preprocess.colmap import ColmapConfig
 from edygs_ns.preprocess.inputs import InputConfig
-from edygs_ns.scripts.process import ProcessConfig, process
+from edygs_ns.preprocess.pipeline import ProcessConfig, process
 from edygs_ns.sim.writer import SynthConfig, write_synthetic_scene
 
 

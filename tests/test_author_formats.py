@@ -37,7 +37,7 @@ from edygs_ns.events.exposures import read_exposures
 from edygs_ns.events.readers import ArrayEventSource, splat_bilinear
 from edygs_ns.events.types import EventArray
 from edygs_ns.preprocess.inputs import DownscaledEventSource, InputConfig, load_capture
-from edygs_ns.scripts.process import ProcessConfig, process
+from edygs_ns.preprocess.pipeline import ProcessConfig, process
 
 # ---------------------------------------------------------------------------------- weighted events
 
@@ -264,7 +264,7 @@ def test_process_e2nerf_real_theta_and_bin_clock(tmp_path: Path) -> None:
 
 
 def _edi(**kwargs):
-    from edygs_ns.scripts.process import ProcessEdiConfig
+    from edygs_ns.preprocess.pipeline import ProcessEdiConfig
 
     return ProcessEdiConfig(**kwargs)
 

@@ -23,7 +23,7 @@ from edygs_ns.events.exposures import Exposure, read_exposures
 from edygs_ns.events.readers import read_events
 from edygs_ns.events.types import EventArray
 from edygs_ns.preprocess.inputs import InputConfig
-from edygs_ns.scripts.process import ProcessConfig, ProcessEdiConfig, process
+from edygs_ns.preprocess.pipeline import ProcessConfig, ProcessEdiConfig, process
 from edygs_ns.sim.writer import SynthConfig, write_synthetic_scene
 
 #: Tiny simulated captures (a few seconds each); 9 sub-frames per blurry frame, the default.

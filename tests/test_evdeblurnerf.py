@@ -25,7 +25,7 @@ from edygs_ns.data.layouts.evdeblurnerf import detect_events_unit, read_evdeblur
 from edygs_ns.events.accumulate import latent_times_us
 from edygs_ns.events.edi import EdiConfig
 from edygs_ns.preprocess.inputs import InputConfig
-from edygs_ns.scripts.process import ProcessConfig, process
+from edygs_ns.preprocess.pipeline import ProcessConfig, process
 
 W, H, FOCAL = 24, 16, 30.0
 #: Image kinds in name order: sharp views first and last (held out), four blurry frames between.

@@ -44,6 +44,7 @@ PENDING: Dict[Tuple[str, str], str] = {
     ("edygs_ns.preprocess.inputs", "edygs_ns.data.layouts.common"): "item 1",
     ("edygs_ns.preprocess.inputs", "edygs_ns.data.layouts.e2nerf_real"): "item 1",
     ("edygs_ns.preprocess.inputs", "edygs_ns.data.layouts.evdeblurnerf"): "item 1",
+    ("edygs_ns.preprocess.pipeline", "edygs_ns.data.layouts.evdeblurnerf"): "item 1",
 }
 
 

@@ -24,7 +24,8 @@ from edygs_ns.preprocess.inputs import InputConfig
 from edygs_ns.preprocess.steps import STEP_RECORD_NAME
 from edygs_ns.io.ply import read_ply_points
 from edygs_ns.preprocess.writer import Undistorter, complete_poses
-from edygs_ns.scripts.process import ProcessConfig, RegistrationError, entrypoint, process
+from edygs_ns.scripts.process import entrypoint
+from edygs_ns.preprocess.pipeline import ProcessConfig, RegistrationError, process
 from edygs_ns.sim.writer import SynthConfig, write_synthetic_scene
 
 #: The tiny synthetic capture shared by the tests (COLMAP registers all of its latents).

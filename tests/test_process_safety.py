@@ -15,8 +15,9 @@ from edygs_ns.events.edi import EdiConfig
 from edygs_ns.preprocess import motion_check
 from edygs_ns.preprocess.inputs import InputConfig
 from edygs_ns.preprocess.steps import STEP_RECORD_NAME
-from edygs_ns.scripts import process as process_module
-from edygs_ns.scripts.process import WORK_DIR_NAME, ProcessConfig, entrypoint, process
+from edygs_ns.preprocess import pipeline as pipeline_module
+from edygs_ns.scripts.process import entrypoint
+from edygs_ns.preprocess.pipeline import ProcessConfig, WORK_DIR_NAME, process
 
 K = 3
 #: Few random points keep the tiny runs fast.
@@ -101,7 +102,7 @@ def test_static_camera_is_caught_before_colmap(tmp_path: Path, monkeypatch) -> N
     def no_colmap(*args, **kwargs):
         raise AssertionError("COLMAP ran on a static camera")
 
-    monkeypatch.setattr(process_module, "run_colmap", no_colmap)
+    monkeypatch.setattr(pipeline_module, "run_colmap", no_colmap)
     config = replace(_config(static, tmp_path / "scene"), poses="colmap")
     with pytest.raises(motion_check.StaticCameraError, match=r"the camera does not move: .*--poses given --given-poses FILE"):
         process(config)

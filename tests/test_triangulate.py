@@ -17,7 +17,7 @@ from edygs_ns.preprocess.colmap import ColmapConfig
 from edygs_ns.preprocess.triangulate import TriangulationConfig, TriangulationError, triangulate_at_poses
 from edygs_ns.io.images import write_rgb_png
 from edygs_ns.io.ply import read_ply_points
-from edygs_ns.scripts.process import ProcessConfig, process
+from edygs_ns.preprocess.pipeline import ProcessConfig, process
 from edygs_ns.sim.writer import SynthConfig, build_world, write_synthetic_scene
 
 #: A tiny synthetic capture (as test_process's): 6 frames x k=3 latents at 160x120.

@@ -44,7 +44,7 @@ def make_tiny_scene(root: Path, room_init: bool = False, **overrides) -> Path:
     ``room_init``: initial points on the room's surfaces instead of random ones."""
     from edygs_ns.io.ply import write_ply_points
     from edygs_ns.preprocess.writer import PLY_NAME
-    from edygs_ns.scripts.process import ProcessConfig, process
+    from edygs_ns.preprocess.pipeline import ProcessConfig, process
 
     synth = SynthConfig(output_dir=root / "raw", **{**TINY_SCENE, **overrides})
     raw = write_synthetic_scene(synth)

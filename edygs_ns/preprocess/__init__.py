@@ -8,6 +8,7 @@ Modules, in the order the data flows through them:
   incremental mapping) and the registration report.
 - :mod:`edygs_ns.preprocess.writer`: the processed layout of docs/layouts.md.
 - :mod:`edygs_ns.preprocess.steps`: the resumable step runner (timing, reuse, --overwrite).
+- :mod:`edygs_ns.preprocess.pipeline`: the steps strung together over one config (``process``).
 
-The command that strings them together is :mod:`edygs_ns.scripts.process` (``edygs-process``).
+The command line is :mod:`edygs_ns.scripts.process` (``edygs-process``).
 """
