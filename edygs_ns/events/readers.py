@@ -77,8 +77,8 @@ TICKS_PER_US = {"us": 1, "ns": 1000}
 #: Events per chunk of the whole-file order and NaN/inf scan of a windowed source.
 SCAN_CHUNK_EVENTS = 1 << 22
 #: Most events :meth:`EventSource.chunks` hands out at once: the unit binning works in, so memory
-#: is bounded by it, not by the file or by how many events one exposure window holds (a read and
-#: its checks take ~100 bytes per event: ~100 MiB at 2^20; see benchmarks/event_memory.py).
+#: is bounded by it, not by the file or by how many events one exposure window holds (reading,
+#: checking and binning take ~50 bytes per event: ~50 MiB at 2^20; benchmarks/event_memory.py).
 READ_CHUNK_EVENTS = 1 << 20
 #: aedat frame formats and the number of channels kept (RGBA drops alpha); aedat >= 2.3 yields
 #: 16-bit grey frames as "I;16" (uint16 codes, e.g. a DAVIS's 10-bit ADC values).
