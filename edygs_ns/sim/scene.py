@@ -18,6 +18,7 @@ from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from edygs_ns.geometry import Intrinsics
 from edygs_ns.sim.appearance import TextureAtlas, lambert, procedural_texture
 from edygs_ns.sim.shapes import RAY_T_MIN, ObjectState, Shape
 
@@ -172,25 +173,8 @@ class Scene:
         return float(np.linalg.norm(self.room_max - self.room_min))
 
 
-@dataclass(frozen=True)
-class PinholeCamera:
-    """Pinhole intrinsics in pixels (pixel centres at integer + 0.5).
-
-    Attributes:
-        width: image width in pixels.
-        height: image height in pixels.
-        fl_x: focal length along x in pixels.
-        fl_y: focal length along y in pixels.
-        cx: principal point x in pixels.
-        cy: principal point y in pixels.
-    """
-
-    width: int
-    height: int
-    fl_x: float
-    fl_y: float
-    cx: float
-    cy: float
+class PinholeCamera(Intrinsics):
+    """The simulator's camera: :class:`~edygs_ns.geometry.Intrinsics` that also casts rays."""
 
     @classmethod
     def from_fov(cls, width: int, height: int, fov_x_deg: float) -> "PinholeCamera":
