@@ -377,7 +377,7 @@ def test_complete_poses_interpolates_unregistered_latents() -> None:
 
 
 def test_undistorter_maps_distorted_dots_to_pinhole_projections() -> None:
-    camera = CameraEstimate("OPENCV", 80, 60, 60.0, 60.0, 40.0, 30.0, k1=-0.25, k2=0.05, p1=0.001, p2=-0.001)
+    camera = CameraEstimate(80, 60, 60.0, 60.0, 40.0, 30.0, model="OPENCV", k1=-0.25, k2=0.05, p1=0.001, p2=-0.001)
     points = np.array([[-0.4, -0.3, 1.0], [0.45, 0.35, 1.0], [0.3, -0.25, 1.0]])
     k_cv = camera.matrix()
     k_cv[:2, 2] -= 0.5

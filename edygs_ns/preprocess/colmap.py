@@ -113,17 +113,12 @@ def with_calibration(config: ColmapConfig, intrinsics: Any) -> Tuple[ColmapConfi
     return replace(config, camera_model=model, camera_params=params, refine_focal_length=False), f"calibrated {model} {params}, fixed"
 
 
-@dataclass
-class CameraEstimate:
-    """The shared camera COLMAP estimated (pixels; OpenCV distortion, zeros for PINHOLE)."""
+@dataclass(frozen=True)
+class CameraEstimate(Intrinsics):
+    """The shared camera COLMAP estimated: pinhole :class:`~edygs_ns.geometry.Intrinsics` plus the
+    COLMAP model name and OpenCV distortion (zeros for PINHOLE)."""
 
-    model: str
-    width: int
-    height: int
-    fl_x: float
-    fl_y: float
-    cx: float
-    cy: float
+    model: str = "PINHOLE"
     k1: float = 0.0
     k2: float = 0.0
     p1: float = 0.0
@@ -133,10 +128,6 @@ class CameraEstimate:
     def intrinsics(self) -> Intrinsics:
         """The pinhole part (distortion dropped)."""
         return Intrinsics(self.width, self.height, self.fl_x, self.fl_y, self.cx, self.cy)
-
-    def matrix(self) -> np.ndarray:
-        """[3, 3] calibration matrix K."""
-        return self.intrinsics.matrix()
 
     def distortion(self) -> np.ndarray:
         """[4] OpenCV distortion coefficients (k1, k2, p1, p2)."""

@@ -438,7 +438,7 @@ class Pipeline:
         if result is not None:
             c2w = complete_poses(result.c2w, result.registered, times.reshape(-1)).reshape(n, k, 4, 4)
             cam = result.camera
-            intrinsics = Intrinsics(cam.width, cam.height, cam.fl_x, cam.fl_y, cam.cx, cam.cy)
+            intrinsics = cam.intrinsics
             distorted = cam if cam.distorted else None
             xyz, rgb = result.points_xyz, result.points_rgb
         else:
