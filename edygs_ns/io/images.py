@@ -1,4 +1,4 @@
-"""Image files as uint8 RGB arrays: read (PIL; grey, RGB or RGBA with optional compositing) and write.
+"""Image files as uint8 RGB arrays: read (grey, RGB or RGBA, alpha composited or dropped) and write.
 
 ``UINT8_MAX`` is the one definition of the 8-bit peak every package divides by.
 """
@@ -40,7 +40,8 @@ def read_rgb_uint8(path: Path, background: Optional[float] = None) -> np.ndarray
 
 
 def save_rgb_uint8(image: np.ndarray, path: Path) -> None:
-    """Write an [H, W, 3] image (uint8, or float in [0, 1]) as an 8-bit PNG."""
+    """Write an [H, W, 3] image (uint8, or float in [0, 1]) as 8 bits per channel (PIL; the format
+    follows the suffix), creating the folder."""
     if image.dtype != np.uint8:
         image = np.clip(np.round(np.asarray(image, dtype=np.float64) * UINT8_MAX), 0, UINT8_MAX).astype(np.uint8)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -48,14 +49,6 @@ def save_rgb_uint8(image: np.ndarray, path: Path) -> None:
 
 
 def write_rgb_png(path: Path, rgb: np.ndarray) -> None:
-    """Write uint8 [H, W, 3] RGB as PNG."""
+    """Write uint8 [H, W, 3] RGB as PNG (OpenCV: fast, for the many work products of edygs-process)."""
     if not cv2.imwrite(str(path), cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR)):
         raise OSError(f"{path}: could not write the image")
-
-
-def read_rgb_png(path: Path) -> np.ndarray:
-    """Read a PNG written by :func:`write_rgb_png` as uint8 [H, W, 3] RGB."""
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise FileNotFoundError(f"{path}: cannot read the image")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)

@@ -46,7 +46,7 @@ from edygs_ns.events.edi import EdiConfig, edi_from_frame
 from edygs_ns.events.exposures import Exposure, read_exposures
 from edygs_ns.events.stream import bin_exposure
 from edygs_ns.geometry import Intrinsics
-from edygs_ns.io.images import UINT8_MAX, read_rgb_png, write_rgb_png
+from edygs_ns.io.images import UINT8_MAX, read_rgb_uint8, write_rgb_png
 from edygs_ns.preprocess.colmap import ColmapConfig, ColmapResult, registration_message, run_colmap, with_calibration
 from edygs_ns.preprocess.inputs import Capture, InputConfig, calibration_path, load_capture, read_image
 from edygs_ns.preprocess.motion_check import check_camera_moves
@@ -305,7 +305,7 @@ class Pipeline:
                 if capture.binned_events is not None:
                     bins = capture.binned_events[i]
                 else:  # one chunked read per exposure, up to the next one: the EDI bins and the Θ fit share it
-                    frame = decode_to_linear(read_rgb_png(blurry[i]) / UINT8_MAX, self.config.edi.color_space)
+                    frame = decode_to_linear(read_rgb_uint8(blurry[i]) / UINT8_MAX, self.config.edi.color_space)
                     bins = bin_exposure(capture.events, exposures, i, self.k, meta["event_count_scale"], contrast, frame)
                 maps[i] = bins
                 total_events += float(np.abs(bins).sum())
@@ -318,7 +318,7 @@ class Pipeline:
         edi_config = replace(self.config.edi, theta=choice.theta)
         with progress_bar("EDI latents", n) as advance:
             for i in range(n):
-                latents = edi_from_frame(read_rgb_png(blurry[i]), maps[i], edi_config)
+                latents = edi_from_frame(read_rgb_uint8(blurry[i]), maps[i], edi_config)
                 for j in range(self.k):
                     pixels = np.clip(np.round(latents[j] * UINT8_MAX), 0, UINT8_MAX).astype(np.uint8)
                     write_rgb_png(self.work / "latents" / latent_name(i, j), pixels)

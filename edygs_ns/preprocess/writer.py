@@ -22,7 +22,7 @@ import numpy as np
 from edygs_ns.events.exposures import Exposure, write_exposures
 from edygs_ns.preprocess.colmap import CameraEstimate
 from edygs_ns.geometry import Intrinsics, interpolate_poses
-from edygs_ns.io.images import read_rgb_png, write_rgb_png
+from edygs_ns.io.images import read_rgb_uint8, write_rgb_png
 from edygs_ns.io.ply import write_ply_points
 
 #: Folder names and files of the processed layout.
@@ -118,7 +118,7 @@ def random_points_from_views(
     cols = np.minimum(u.astype(np.int64), intrinsics.width - 1)
     for i in np.unique(view):
         chosen = view == i
-        rgb[chosen] = read_rgb_png(image_paths[i])[rows[chosen], cols[chosen]]
+        rgb[chosen] = read_rgb_uint8(image_paths[i])[rows[chosen], cols[chosen]]
     return xyz, rgb
 
 
@@ -267,7 +267,7 @@ def _place_images(sources: Sequence[Path], targets: Sequence[Path], undistort: O
         if undistort is None:
             _link_or_copy(src, dst)
         else:
-            write_rgb_png(dst, undistort.apply(read_rgb_png(src)))
+            write_rgb_png(dst, undistort.apply(read_rgb_uint8(src)))
 
 
 def _place_event_maps(src: Path, dst: Path, undistort: Optional[Undistorter]) -> None:
