@@ -59,7 +59,7 @@ def test_a_misspelt_loss_name_raises() -> None:
 
 
 def test_every_loss_name_the_model_uses_is_a_loss_term() -> None:
-    """The model's is_active(...) names and loss-dict keys are LossName values (a typo would never fire)."""
+    """The model asks is_active(...) with LossName members, and its loss-dict keys are their values."""
     import ast
     from pathlib import Path
 
@@ -67,8 +67,9 @@ def test_every_loss_name_the_model_uses_is_a_loss_term() -> None:
     from edygs_ns.losses.names import LossName
 
     tree = ast.parse(Path(model_module.__file__).read_text(encoding="utf-8"))
-    asked = {node.args[0].value for node in ast.walk(tree) if isinstance(node, ast.Call)
-             and getattr(node.func, "id", None) == "is_active" and isinstance(node.args[0], ast.Constant)}
+    calls = [node.args[0] for node in ast.walk(tree) if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "is_active"]
+    assert calls and all(isinstance(a, ast.Attribute) and getattr(a.value, "id", None) == "LossName" for a in calls)
+    asked = {LossName[a.attr].value for a in calls}  # an unknown member would raise KeyError here
     keyed = {node.slice.value for node in ast.walk(tree) if isinstance(node, ast.Subscript)
              and getattr(node.value, "id", None) == "losses" and isinstance(getattr(node.slice, "value", None), str)}
     names = {name.value for name in LossName}

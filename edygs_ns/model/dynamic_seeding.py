@@ -104,7 +104,7 @@ class DynamicSeedingConfig:
     """at most this many moving objects get seeds and a rigid body (model/motion_init.py)"""
     max_candidates: int = 10
     """at most this many evidence regions are tracked (movers and still flaws of the static model)"""
-    still_shift: float = 1.0
+    still_shift: float = 0.5
     """a tracked region is a mover only if, in some latent, it lies this many of its radii from
     where any static point on its reference ray would be (and ``still_shift_fraction``)"""
     still_shift_fraction: float = 0.05

@@ -25,6 +25,7 @@ from edygs_ns.events.color import decode_to_linear
 from edygs_ns.geometry import adjust_poses, c2w_opencv, viewmats_from_c2w
 from edygs_ns.losses.blur import blur_loss
 from edygs_ns.losses.events import DEFAULT_LOG_EPS, event_loss
+from edygs_ns.losses.names import LossName
 from edygs_ns.losses.photometric import l1_dssim, latent_confidence
 from edygs_ns.losses.regularizers import mask_consistency, mask_l1, motion_loss
 from edygs_ns.model.appearance import MAX_SH_DEGREE, sh_to_rgb
@@ -230,6 +231,7 @@ class EdygsModel(SplatExportView):
         # bound methods, not the datamanager itself (an nn.Module attribute would join the state dict)
         self._train_image = getattr(datamanager, "train_image", None)
         self._set_time_window = getattr(datamanager, "set_time_window", None)
+        select_backend(self.device, self.config.rasterizer)  # a missing CUDA build fails here, in one line
         return [
             TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self.before_step, args=[attrs.optimizers]),
             TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.after_step),
@@ -484,23 +486,23 @@ class EdygsModel(SplatExportView):
         losses: Dict[str, Tensor] = {}
         indices = self._batch_indices(batch, rgb) if self.training else None
         weights = None if indices is None or cfg.edi_centre_weighting == 0 else self.edi_weights[indices.to(self.edi_weights.device)]
-        if cfg.use_edi_loss and is_active("edi", phase):
+        if cfg.use_edi_loss and is_active(LossName.EDI, phase):
             losses["edi"] = cfg.lambda_edi * l1_dssim(rgb, gt, cfg.ssim_lambda, image_weights=weights)
-        if cfg.use_edi_loss and cfg.use_motion_mask and is_active("edi_static", phase):
+        if cfg.use_edi_loss and cfg.use_motion_mask and is_active(LossName.EDI_STATIC, phase):
             losses["edi_static"] = cfg.lambda_edi_static * l1_dssim(rgb, gt, cfg.ssim_lambda, weight=1.0 - mask, image_weights=weights)
         linear = decode_to_linear(rgb, self.color_space)
-        if cfg.use_event_loss and is_active("event", phase) and "event_map" in batch and rgb.dim() == 4 and rgb.shape[0] == 2:
+        if cfg.use_event_loss and is_active(LossName.EVENT, phase) and "event_map" in batch and rgb.dim() == 4 and rgb.shape[0] == 2:
             event_map = batch["event_map"].to(self.device).float()
             losses["event"] = cfg.lambda_event * event_loss(linear[0], linear[1], event_map, self.theta, cfg.event_log_eps)
-        if cfg.use_blur_loss and cfg.lambda_blur > 0 and is_active("blur", phase) and "blurry" in batch and indices is not None:
+        if cfg.use_blur_loss and cfg.lambda_blur > 0 and is_active(LossName.BLUR, phase) and "blurry" in batch and indices is not None:
             losses["blur"] = cfg.lambda_blur * self._blur_term(linear, indices, batch["blurry"])
-        if cfg.use_motion_mask and is_active("mask_l1", phase):
+        if cfg.use_motion_mask and is_active(LossName.MASK_L1, phase):
             losses["mask_l1"] = cfg.lambda_mask * mask_l1(mask)
-        if cfg.use_motion_mask and is_active("mask_consistency", phase) and self.static_masks.numel() > 0:
+        if cfg.use_motion_mask and is_active(LossName.MASK_CONSISTENCY, phase) and self.static_masks.numel() > 0:
             if indices is not None:
                 reference = self.static_masks[indices.to(self.static_masks.device)].to(self.device).float()[..., None]
                 losses["mask_consistency"] = cfg.lambda_mask_consistency * mask_consistency(mask.reshape(reference.shape), reference)
-        if cfg.use_motion_mask and is_active("motion", phase) and getattr(self, "_deform_terms", None):
+        if cfg.use_motion_mask and is_active(LossName.MOTION, phase) and getattr(self, "_deform_terms", None):
             terms = []
             for t in self._deform_terms:
                 m = t["deformed_mask"].detach() if cfg.detach_mask_in_motion_loss else t["deformed_mask"]
