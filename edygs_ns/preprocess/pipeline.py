@@ -50,6 +50,7 @@ from edygs_ns.io.images import UINT8_MAX, read_rgb_uint8, write_rgb_png
 from edygs_ns.preprocess.colmap import ColmapConfig, ColmapResult, registration_message, run_colmap, with_calibration
 from edygs_ns.preprocess.inputs import Capture, InputConfig, calibration_path, load_capture, read_image
 from edygs_ns.preprocess.motion_check import check_camera_moves
+from edygs_ns.preprocess.path_check import jump_notice, path_jumps
 from edygs_ns.preprocess.steps import StepRunner, file_signature, fingerprint, progress_bar
 from edygs_ns.preprocess.triangulate import GivenPoints, TriangulationConfig, initial_points_at_poses
 from edygs_ns.preprocess.writer import (
@@ -336,6 +337,9 @@ class Pipeline:
             colmap, camera = self.colmap_settings()
             result = run_colmap(self.work / "latents", names, self.work / COLMAP_WORK, colmap)
             result.save(self.work / COLMAP_WORK)
+            jumps = jump_notice(path_jumps(result.c2w[result.registered]), [n for n, ok in zip(names, result.registered) if ok])
+            if jumps:
+                CONSOLE.print(jumps, soft_wrap=True, markup=False)
             error = f"{result.mean_reprojection_error:.3f} px" if np.isfinite(result.mean_reprojection_error) else "n/a"
             return (f"COLMAP registered {result.num_registered}/{len(names)} latents, {len(result.points_xyz):,} points, "
                     f"mean reprojection error {error}, {result.num_reconstructions} model(s); camera: {camera}")
@@ -417,6 +421,8 @@ class Pipeline:
             "unregistered_latents": result.unregistered_names,
             "mean_reprojection_error_px": float(error) if np.isfinite(error) else None,
             "num_reconstructions": result.num_reconstructions,
+            "path_jumps": jump_notice(path_jumps(result.c2w[result.registered]),
+                                      [n for n, ok in zip(result.names, result.registered) if ok]) or None,
             "camera": asdict(result.camera) if result.camera is not None else None,
             "camera_setting": self.colmap_settings()[1],
         }
