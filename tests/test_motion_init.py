@@ -125,3 +125,5 @@ def test_a_big_object_need_not_travel_its_radius():
     assert not strays_far(5.0, radius_px=3.0, width=128, seeding=cfg)  # a few pixels: track jitter
     half = cfg.still_shift * 20.0  # between the floor and the cap, half the radius (still_shift 0.5)
     assert strays_far(half + 1.0, radius_px=20.0, width=128, seeding=cfg) and not strays_far(half - 1.0, radius_px=20.0, width=128, seeding=cfg)
+    # a region kept on its presence alone (poor rigid fit) must stray a whole radius
+    assert not strays_far(half + 1.0, radius_px=20.0, width=128, seeding=cfg, radii=cfg.steady_shift)

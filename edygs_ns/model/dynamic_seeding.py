@@ -118,6 +118,8 @@ class DynamicSeedingConfig:
     steady_presence: float = 0.75
     """... unless its evidence is found in this share of the latents (then its rigid fit is poor,
     e.g. a deforming object: its body only translates and the MLP does the rest)"""
+    steady_shift: float = 1.0
+    """such a region (kept on presence alone) must stray this many of its radii instead of ``still_shift``"""
 
 
 def box_filter(images: Float[Tensor, "N H W"], size: int) -> Float[Tensor, "N H W"]:

@@ -22,7 +22,8 @@ deformation's base motion (``deformation.RigidMotion``), and the mask-consistenc
    radius (at least ``still_shift_fraction``, at most ``still_shift_cap`` of the image width) in
    some latent. A region followed
    through ``steady_presence`` of the latents is kept even when the rigid silhouette fits it
-   poorly (a deforming or articulated object); its body then moves without turning and the
+   poorly (a deforming or articulated object), if it strays ``steady_shift`` (not ``still_shift``)
+   of its radius; its body then moves without turning and the
    deformation MLP's residual carries the rest (the fallback where a rigid fit is poor). Otherwise it is a flaw of the static model. A track that mostly runs
    inside a mover's claimed zone is that mover again (started where it crossed another object). A region that is no mover gets
    no seeds and no body: nothing moving, nothing added. An object that only turns in place is not
@@ -159,10 +160,11 @@ def unexplained_shift(track: RigidTrack, ref: int, viewmats: Float[Tensor, "N 4 
     return best
 
 
-def strays_far(shift_px: float, radius_px: float, width: int, seeding: DynamicSeedingConfig) -> bool:
-    """Whether a track's unexplained shift (pixels) makes its region a mover: ``still_shift`` of its
-    radius (pixels), at least ``still_shift_fraction`` and at most ``still_shift_cap`` of the width."""
-    needed = min(seeding.still_shift * radius_px, seeding.still_shift_cap * width)
+def strays_far(shift_px: float, radius_px: float, width: int, seeding: DynamicSeedingConfig, radii: Optional[float] = None) -> bool:
+    """Whether a track's unexplained shift (pixels) makes its region a mover: ``radii`` (default
+    ``still_shift``) of its radius (pixels), at least ``still_shift_fraction`` and at most
+    ``still_shift_cap`` of the width."""
+    needed = min((seeding.still_shift if radii is None else radii) * radius_px, seeding.still_shift_cap * width)
     return shift_px >= max(needed, seeding.still_shift_fraction * width)
 
 
@@ -238,7 +240,7 @@ def initialise_motion(
         # a region followed through most of the clip is real even when one rigid silhouette fits it
         # poorly (a deforming or articulated object): its track then only carries it, see below
         consistent = presence >= seeding.min_presence and (rigid_fit or presence >= seeding.steady_presence)
-        far = strays_far(shift_px, radius_px, width, seeding)
+        far = strays_far(shift_px, radius_px, width, seeding, seeding.still_shift if rigid_fit else seeding.steady_shift)
         moved = consistent and far and not _duplicate(track, result.movers)
         reach = tracking.reach * float(distances.max())
         if moved and not rigid_fit:
