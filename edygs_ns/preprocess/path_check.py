@@ -69,3 +69,9 @@ def jump_notice(jumps: List[PathJump], names: Sequence[str]) -> str:
     listed = "; ".join(described[:3]) + (f"; and {len(described) - 3} more" if len(described) > 3 else "")
     return (f"warning: the estimated camera path jumps ({listed}): a moving object may have pulled COLMAP's poses "
             "near there; look at them (ns-viewer) before training, or give poses (--poses given)")
+
+
+def registered_path_notice(c2w: np.ndarray, registered: np.ndarray, names: Sequence[str]) -> str:
+    """``jump_notice`` for the registered latents of a time-ordered path (c2w [N, 4, 4], registered
+    [N] bool, names [N]); empty when the path is smooth."""
+    return jump_notice(path_jumps(c2w[registered]), [n for n, ok in zip(names, registered) if ok])

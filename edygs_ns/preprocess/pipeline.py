@@ -50,7 +50,7 @@ from edygs_ns.io.images import UINT8_MAX, read_rgb_uint8, write_rgb_png
 from edygs_ns.preprocess.colmap import ColmapConfig, ColmapResult, registration_message, run_colmap, with_calibration
 from edygs_ns.preprocess.inputs import Capture, InputConfig, calibration_path, load_capture, read_image
 from edygs_ns.preprocess.motion_check import check_camera_moves
-from edygs_ns.preprocess.path_check import jump_notice, path_jumps
+from edygs_ns.preprocess.path_check import registered_path_notice
 from edygs_ns.preprocess.steps import StepRunner, file_signature, fingerprint, progress_bar
 from edygs_ns.preprocess.triangulate import GivenPoints, TriangulationConfig, initial_points_at_poses
 from edygs_ns.preprocess.writer import (
@@ -337,7 +337,7 @@ class Pipeline:
             colmap, camera = self.colmap_settings()
             result = run_colmap(self.work / "latents", names, self.work / COLMAP_WORK, colmap)
             result.save(self.work / COLMAP_WORK)
-            jumps = jump_notice(path_jumps(result.c2w[result.registered]), [n for n, ok in zip(names, result.registered) if ok])
+            jumps = registered_path_notice(result.c2w, result.registered, result.names)
             if jumps:
                 CONSOLE.print(jumps, soft_wrap=True, markup=False)
             error = f"{result.mean_reprojection_error:.3f} px" if np.isfinite(result.mean_reprojection_error) else "n/a"
@@ -421,8 +421,7 @@ class Pipeline:
             "unregistered_latents": result.unregistered_names,
             "mean_reprojection_error_px": float(error) if np.isfinite(error) else None,
             "num_reconstructions": result.num_reconstructions,
-            "path_jumps": jump_notice(path_jumps(result.c2w[result.registered]),
-                                      [n for n, ok in zip(result.names, result.registered) if ok]) or None,
+            "path_jumps": registered_path_notice(result.c2w, result.registered, result.names) or None,
             "camera": asdict(result.camera) if result.camera is not None else None,
             "camera_setting": self.colmap_settings()[1],
         }
