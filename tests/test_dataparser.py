@@ -18,9 +18,9 @@ from scene_fixtures import (
 )
 
 from edygs_ns.data.dataparser import EdygsDataParserConfig
-from edygs_ns.data.event_maps import CACHE_DIR_NAME
+from edygs_ns.preprocess.cache import CACHE_DIR_NAME
 from edygs_ns.io.images import read_rgb_uint8
-from edygs_ns.data.layouts.e2nerf_synthetic import subframe_fractions, subframe_indices
+from edygs_ns.preprocess.e2nerf import subframe_fractions, subframe_indices
 from edygs_ns.io.ply import read_ply_points, write_ply_points
 from edygs_ns.events.edi import EdiConfig, edi_from_frame
 

@@ -21,7 +21,7 @@ import pytest
 
 from edygs_ns.data.dataparser import EdygsDataParserConfig
 from edygs_ns.data.layouts import detect_layout
-from edygs_ns.data.layouts.evdeblurnerf import detect_events_unit, read_evdeblurnerf_folder
+from edygs_ns.preprocess.evdeblurnerf import detect_events_unit, read_evdeblurnerf_folder
 from edygs_ns.events.accumulate import latent_times_us
 from edygs_ns.events.edi import EdiConfig
 from edygs_ns.preprocess.inputs import InputConfig

@@ -40,11 +40,6 @@ PENDING: Dict[Tuple[str, str], str] = {
     # item 3: phase application moves into training callbacks that drive the model
     ("edygs_ns.model.edygs_model", "edygs_ns.training.schedule"): "item 3",
     ("edygs_ns.model.edygs_model", "edygs_ns.training.resume"): "item 3",
-    # item 1: per-format readers shared by edygs-process and the dataparser
-    ("edygs_ns.preprocess.inputs", "edygs_ns.data.layouts.common"): "item 1",
-    ("edygs_ns.preprocess.inputs", "edygs_ns.data.layouts.e2nerf_real"): "item 1",
-    ("edygs_ns.preprocess.inputs", "edygs_ns.data.layouts.evdeblurnerf"): "item 1",
-    ("edygs_ns.preprocess.pipeline", "edygs_ns.data.layouts.evdeblurnerf"): "item 1",
 }
 
 

@@ -15,7 +15,8 @@ from edygs_ns.events.exposures import Exposure
 from edygs_ns.events.readers import _frame_from_packet, open_event_source, read_events
 from edygs_ns.events.units import detect_time_unit, ticks_to_us
 from edygs_ns.preprocess.frames import frames_to_rgb8, infer_bit_depth, read_frames
-from edygs_ns.preprocess.inputs import InputConfig, e2nerf_events_file, load_capture, _e2nerf_bins
+from edygs_ns.preprocess.e2nerf import events_file as e2nerf_events_file, read_event_bins
+from edygs_ns.preprocess.inputs import InputConfig, load_capture
 
 from capture_fixtures import EXPOSURE_US, PERIOD_US, write_tiny_capture
 
@@ -225,11 +226,11 @@ def test_e2nerf_event_pt_name_and_four_d_bins(tmp_path: Path) -> None:
     torch.save(grid, tmp_path / "event.pt")
     path = e2nerf_events_file(tmp_path)
     assert path.name == "event.pt"
-    four_d = _e2nerf_bins(path, 2, 3, 5, k=5)
+    four_d = read_event_bins(path, 2, 3, 5, bins=4)
     torch.save(grid.reshape(2, 4, 15), tmp_path / "flat.pt")
-    np.testing.assert_array_equal(four_d, _e2nerf_bins(tmp_path / "flat.pt", 2, 3, 5, k=5))
-    with pytest.raises(ValueError, match=r"event\.pt: expected event bins of shape \(2, 4, 12\) or \(2, 4, 3, 4\)"):
-        _e2nerf_bins(path, 2, 3, 4, k=5)
+    np.testing.assert_array_equal(four_d, read_event_bins(tmp_path / "flat.pt", 2, 3, 5, bins=4))
+    with pytest.raises(ValueError, match=r"event\.pt: event bins have shape \(2, 4, 3, 5\), expected \(2, 4, 12\) or \(2, 4, 3, 4\)"):
+        read_event_bins(path, 2, 3, 4, bins=4)
     torch.save({"not": "a tensor"}, tmp_path / "dict.pt")
     with pytest.raises(ValueError, match=r"dict\.pt: expected one tensor"):
-        _e2nerf_bins(tmp_path / "dict.pt", 2, 3, 5, k=5)
+        read_event_bins(tmp_path / "dict.pt", 2, 3, 5, bins=4)

@@ -43,8 +43,9 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from edygs_ns.data.layouts import read_scene
-from edygs_ns.data.layouts.common import GT_ALIGNMENT_SCALE_NOTE, SceneRecord
+from edygs_ns.data.layouts.common import GT_ALIGNMENT_SCALE_NOTE, PROCESSED_LAYOUT, SceneRecord
 from edygs_ns.io.images import UINT8_MAX
+from edygs_ns.preprocess.triangulate import cached_points_at_poses
 from edygs_ns.geometry import Intrinsics
 
 #: Below this camera-centre extent (after centring) poses are not auto-scaled (it would blow up).
@@ -81,6 +82,11 @@ class EdygsDataParserConfig(DataParserConfig):
     """Extra scale applied to the poses (after auto scaling)."""
     scene_scale: float = 1.0
     """Half side of the scene box (in transformed units)."""
+    initial_points: Literal["triangulated", "random"] = "triangulated"
+    """Initial points of a layout read directly (E2NeRF, EvDeblurNeRF: given poses, no point cloud):
+    "triangulated" from the EDI latents at the given poses (COLMAP features and matching, poses and
+    intrinsics fixed; once, cached under the scene's edygs_cache/), falling back to random points with a
+    one-line warning; "random": uniform in the scene box. Processed scenes bring their own points."""
     num_random_points: int = 20000
     """Points drawn uniformly in the scene box when the scene has no point cloud."""
     random_seed: int = 0
@@ -184,6 +190,8 @@ class EdygsDataParser(DataParser):
                 Path(cfg.data), cfg.layout, theta=cfg.theta, color_space=cfg.color_space, clip_max=cfg.edi_clip_max,
                 k=cfg.k,
             )
+            if cfg.initial_points == "triangulated" and self._record.layout != PROCESSED_LAYOUT:
+                self._triangulate(self._record)
             self._transform = _fit_transform(self._record, cfg)
             r = self._record
             CONSOLE.log(
@@ -192,6 +200,21 @@ class EdygsDataParser(DataParser):
                 + (f", {len(r.novel)} novel views" if r.novel is not None else "")
             )
         return self._record
+
+    def _triangulate(self, record: SceneRecord) -> None:
+        """Give a scene without points those triangulated at its given poses (cached), or warn once
+        that it starts from random points."""
+        if record.points_xyz is not None or record.pose_source != "given":
+            return
+        points, line = cached_points_at_poses(record.root, record.latent_image_paths, record.latent_c2w,
+                                              record.intrinsics)
+        if points is None:
+            CONSOLE.print(f"[yellow]warning[/]: {record.root}: no triangulated initial points ({line}); starting from "
+                          f"{self.config.num_random_points:,} random points in the scene box", soft_wrap=True)
+            return
+        record.points_xyz, record.points_rgb = points.xyz.astype(np.float32), points.rgb
+        record.notes = dict(record.notes or {}, initial_points=line)
+        CONSOLE.log(f"edygs-data: {line}")
 
     def _eval_mode(self, record: SceneRecord) -> str:
         mode = self.config.eval_mode

@@ -21,7 +21,7 @@ Input forms:
     13, 17; real data's EDI uses Θ = 0.3 (:attr:`Capture.default_theta`; the pre-binned events
     give no Θ estimate).
   - ``--evdeblurnerf DIR``: an EvDeblurNeRF scene (``images_1/`` with ``timestamps.npz``,
-    ``poses_bounds.npy``, ``events.h5``; :mod:`edygs_ns.data.layouts.evdeblurnerf` describes
+    ``poses_bounds.npy``, ``events.h5``; :mod:`edygs_ns.preprocess.evdeblurnerf` describes
     the format and its sources). Raw events with real exposure times, so any k works. The
     blurry frames are the images whose exposure has a length; the sharp held-out views become
     the processed scene's ground-truth novel views. Given poses are the scene's camera path
@@ -60,9 +60,7 @@ from edygs_ns.events.types import EventArray
 from edygs_ns.events.units import AUTO_UNIT, US_PER_TICK, detect_time_unit
 from edygs_ns.preprocess.frames import frames_to_rgb8, read_frames, read_raw_image, to_rgb8  # noqa: F401 (re-exported)
 from edygs_ns.geometry import Intrinsics, interpolate_poses
-from edygs_ns.data.layouts.common import E2NERF_EVENT_FILES
-from edygs_ns.data.layouts.e2nerf_real import DEFAULT_THETA as E2NERF_REAL_DEFAULT_THETA
-from edygs_ns.data.layouts.e2nerf_real import E2NERF_BIN_US
+from edygs_ns.preprocess import e2nerf
 
 #: Name of the ground-truth folder of a raw capture, and its pose file.
 GT_DIR_NAME = "gt"
@@ -73,42 +71,20 @@ SCENE_JSON_NAME = "scene.json"
 CALIBRATION_NAME = "camera.json"
 #: Largest relative difference of width/height aspect between a calibration and the frames.
 CALIBRATION_ASPECT_TOLERANCE = 1e-2
-#: E2NeRF synthetic scene files.
-E2NERF_TRAIN_JSON = "transform_train.json"
-E2NERF_TRAIN_DIR = "train"
-#: E2NeRF's README names its event file event.pt; either name is read (events.pt first).
-E2NERF_EVENTS = E2NERF_EVENT_FILES[0]
-E2NERF_IMAGE_PATTERN = "r_{index}.png"
-#: E2NeRF real (LLFF style) scene files.
-E2NERF_LLFF_POSES = "poses_bounds.npy"
-E2NERF_LLFF_IMAGES = "images"
-E2NERF_LLFF_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".PNG")
-#: E2NeRF stores this many event bins per blurry frame (5 latents).
-E2NERF_BINS = 4
-#: E2NeRF synthetic frames list their sub-frame poses; the blur averages sub-frames 0..17 and the
-#: bins span 0->5, 5->9, 9->13, 13->17, so latent j of 5 sits at index 0 for j = 0, else
-#: E2NERF_FIRST_LATENT_POSE + j * E2NERF_LATENT_POSE_STEP (indices 0, 5, 9, 13, 17).
-E2NERF_START_POSE = 0
-E2NERF_FIRST_LATENT_POSE = 1
-E2NERF_LATENT_POSE_STEP = 4
-#: LLFF rows: 3x5 pose-and-hwf matrix, then near and far.
-LLFF_POSE_SHAPE = (3, 5)
-LLFF_ROW_LENGTH = 17
-#: E2NeRF's Blender scenes are rendered between these depths (its loader's near and far).
-E2NERF_BLENDER_DEPTH_RANGE = (2.0, 6.0)
+#: E2NeRF stores this many event bins per blurry frame (5 latents); :mod:`.e2nerf` reads its scenes.
+E2NERF_BINS = e2nerf.BINS
 #: Nominal clock of E2NeRF frames, which store no timestamps: frame i is exposed over
 #: [i * period, i * period + exposure) µs. Only normalised latent times depend on it.
 E2NERF_FRAME_PERIOD_US = 200_000
 #: Real data: E2NeRF bins events in fixed 25.001 ms windows from the exposure start, 4 of them:
 #: the latents (bin edges) sit at start + j * 25.001 ms.
-E2NERF_REAL_BIN_US = E2NERF_BIN_US
+E2NERF_REAL_BIN_US = e2nerf.BIN_US
 E2NERF_REAL_EXPOSURE_US = E2NERF_BINS * E2NERF_REAL_BIN_US
 #: Synthetic data: sub-frames 10 ms apart, the blur spans sub-frames 0..17. Its latents (0, 5,
 #: 9, 13, 17) are not evenly spaced; the processed scene spaces them evenly (times only).
-E2NERF_SUBFRAME_US = 10_000
-E2NERF_SYNTHETIC_EXPOSURE_US = 17 * E2NERF_SUBFRAME_US
+E2NERF_SYNTHETIC_EXPOSURE_US = e2nerf.LAST_SUBFRAME * e2nerf.SUBFRAME_US
 #: Default Θ of E2NeRF real data (its EDI.py), used when no --theta is given.
-E2NERF_REAL_THETA = E2NERF_REAL_DEFAULT_THETA
+E2NERF_REAL_THETA = e2nerf.REAL_THETA
 #: E2NeRF reads RGBA frames without compositing (white_bkgd = False): alpha is dropped.
 E2NERF_ALPHA_BACKGROUND = "none"
 #: What a coverage error suggests checking (edygs-process can convert and shift the event clock).
@@ -642,50 +618,6 @@ def _e2nerf_exposures(n: int, files: Sequence[Path], exposure_us: int) -> List[E
     ]
 
 
-def e2nerf_events_file(folder: Path) -> Path:
-    """The E2NeRF event file of a scene folder: events.pt, else event.pt (the name in E2NeRF's README).
-
-    Raises:
-        FileNotFoundError: neither exists.
-    """
-    for name in E2NERF_EVENT_FILES:
-        if (folder / name).is_file():
-            return folder / name
-    raise FileNotFoundError(f"{folder}: E2NeRF event bins not found (looked for {' and '.join(E2NERF_EVENT_FILES)})")
-
-
-def _e2nerf_bins(path: Path, n_views: int, height: int, width: int, k: int) -> np.ndarray:
-    """events.pt [views, 4, H*W] or [views, 4, H, W] as [views, k-1, H, W] float32 (bins merged when k - 1 < 4)."""
-    import torch
-
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: E2NeRF event bins not found")
-    try:
-        tensor = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # pickle, zip and torch errors alike: one line naming the file
-        raise ValueError(f"{path}: cannot read as a torch tensor file ({type(err).__name__}: {err})") from None
-    if not isinstance(tensor, torch.Tensor):
-        raise ValueError(f"{path}: expected one tensor of event bins, got a {type(tensor).__name__}")
-    bins = tensor.float().numpy()
-    flat_ok = bins.ndim == 3 and bins.shape[2] == height * width
-    grid_ok = bins.ndim == 4 and bins.shape[2:] == (height, width)
-    if not (flat_ok or grid_ok) or bins.shape[0] != n_views or bins.shape[1] != E2NERF_BINS:
-        raise ValueError(
-            f"{path}: expected event bins of shape ({n_views}, {E2NERF_BINS}, {height * width}) or "
-            f"({n_views}, {E2NERF_BINS}, {height}, {width}) for {n_views} {width}x{height} frames, got {tuple(bins.shape)}"
-        )
-    if E2NERF_BINS % (k - 1) != 0:
-        raise ValueError(f"{path}: E2NeRF stores {E2NERF_BINS} event bins per frame; k - 1 must divide it, got k={k}")
-    merged = bins.reshape(n_views, k - 1, E2NERF_BINS // (k - 1), height, width).sum(axis=2)
-    return np.ascontiguousarray(merged, dtype=np.float32)
-
-
-def _e2nerf_latent_pose_indices(k: int) -> List[int]:
-    """Indices in an E2NeRF sub-pose list of the k latents: 0, then the bin edges (0, 5, 9, 13, 17 for k = 5)."""
-    step = E2NERF_LATENT_POSE_STEP * E2NERF_BINS // (k - 1)
-    return [E2NERF_START_POSE] + [E2NERF_FIRST_LATENT_POSE + j * step for j in range(1, k)]
-
-
 def _read_scene_frames(
     folder: Path, files: Sequence[Path], config: InputConfig, notes: List[str], own_background: str = "white"
 ) -> List[np.ndarray]:
@@ -699,69 +631,6 @@ def _read_scene_frames(
     return frames
 
 
-def _load_e2nerf_blender(
-    folder: Path, config: InputConfig, k: int, notes: List[str]
-) -> Tuple[List[np.ndarray], List[Path], np.ndarray, Intrinsics, Tuple[float, float]]:
-    """Frames, files, per-latent c2w [n_all, k, 4, 4], intrinsics and depth range of a Blender-style scene."""
-    meta_path = folder / E2NERF_TRAIN_JSON
-    meta = json.loads(meta_path.read_text())
-    entries = meta.get("frames", [])
-    files, poses = [], []
-    for index, entry in enumerate(entries):
-        image = folder / E2NERF_TRAIN_DIR / E2NERF_IMAGE_PATTERN.format(index=index)
-        if not image.is_file():
-            continue  # E2NeRF keeps every other frame's image for training
-        matrices = np.asarray(entry["transform_matrix"], dtype=np.float64)
-        wanted = _e2nerf_latent_pose_indices(k)
-        if matrices.ndim == 2:  # one pose for the whole exposure: every latent shares it
-            matrices = np.repeat(matrices[None], wanted[-1] + 1, axis=0)
-        if matrices.ndim != 3 or matrices.shape[0] <= wanted[-1]:
-            raise ValueError(f"{meta_path}: frame {index} has {matrices.shape[0]} sub-poses; latents need index {wanted[-1]}")
-        files.append(image)
-        poses.append(matrices[wanted])
-    if not files:
-        raise FileNotFoundError(f"{folder / E2NERF_TRAIN_DIR}: no training image r_<i>.png for the frames of {meta_path}")
-    frames = _read_scene_frames(folder, files, config, notes, E2NERF_ALPHA_BACKGROUND)
-    h, w = frames[0].shape[:2]
-    focal = 0.5 * w / float(np.tan(0.5 * float(meta["camera_angle_x"])))
-    return frames, files, np.stack(poses), Intrinsics(w, h, focal, focal, w / 2.0, h / 2.0), E2NERF_BLENDER_DEPTH_RANGE
-
-
-def _load_e2nerf_llff(
-    folder: Path, config: InputConfig, k: int, notes: List[str]
-) -> Tuple[List[np.ndarray], List[Path], np.ndarray, Intrinsics, Tuple[float, float]]:
-    """Frames, files, per-latent c2w, intrinsics and depth range of an LLFF-style (real) scene."""
-    rows = np.load(folder / E2NERF_LLFF_POSES)
-    if rows.ndim != 2 or rows.shape[1] != LLFF_ROW_LENGTH:
-        raise ValueError(f"{folder / E2NERF_LLFF_POSES}: expected rows of {LLFF_ROW_LENGTH} numbers, got shape {rows.shape}")
-    image_dir = folder / E2NERF_LLFF_IMAGES
-    files = sorted(p for p in image_dir.iterdir() if p.suffix in E2NERF_LLFF_SUFFIXES) if image_dir.is_dir() else []
-    if not files:
-        raise FileNotFoundError(f"{image_dir}: no blurry frames (.png/.jpg)")
-    latents_per_frame = E2NERF_BINS + 1
-    if rows.shape[0] != len(files) * latents_per_frame:
-        raise ValueError(
-            f"{folder / E2NERF_LLFF_POSES}: {rows.shape[0]} pose rows for {len(files)} frames; "
-            f"expected {latents_per_frame} per frame"
-        )
-    frames = _read_scene_frames(folder, files, config, notes, E2NERF_ALPHA_BACKGROUND)
-    mats = rows[:, : LLFF_POSE_SHAPE[0] * LLFF_POSE_SHAPE[1]].reshape(-1, *LLFF_POSE_SHAPE)
-    # LLFF rotation columns are (down, right, back); OpenGL wants (right, up, back).
-    c2w = np.tile(np.eye(4), (len(mats), 1, 1))
-    c2w[:, :3, 0] = mats[:, :, 1]
-    c2w[:, :3, 1] = -mats[:, :, 0]
-    c2w[:, :3, 2] = mats[:, :, 2]
-    c2w[:, :3, 3] = mats[:, :, 3]
-    per_frame = c2w.reshape(len(files), latents_per_frame, 4, 4)
-    step = E2NERF_BINS // (k - 1) if E2NERF_BINS % (k - 1) == 0 else 1
-    per_frame = per_frame[:, :: step][:, :k]
-    height, width, focal = (float(v) for v in mats[0, :, 4])
-    h, w = frames[0].shape[:2]
-    intrinsics = Intrinsics(int(round(width)), int(round(height)), focal, focal, width / 2.0, height / 2.0).resized(w, h)
-    bounds = rows[:, -2:]
-    return frames, files, per_frame, intrinsics, (float(bounds[:, 0].min()), float(bounds[:, 1].max()))
-
-
 def load_e2nerf(config: InputConfig, k: int) -> Capture:
     """Input form (c): an E2NeRF synthetic (Blender) or real (LLFF) scene with binned events."""
     folder = Path(config.e2nerf)
@@ -769,22 +638,31 @@ def load_e2nerf(config: InputConfig, k: int) -> Capture:
         raise FileNotFoundError(f"{folder}: E2NeRF scene folder not found")
     if config.events_time_unit != AUTO_UNIT:
         raise ValueError(f"{folder}: --events-time-unit does not apply to --e2nerf (its events are pre-binned, without timestamps)")
-    notes: List[str] = []
-    if (folder / E2NERF_TRAIN_JSON).is_file():
-        loaded = _load_e2nerf_blender(folder, config, k, notes)
-        pose_file, exposure_us, theta, theta_origin = folder / E2NERF_TRAIN_JSON, E2NERF_SYNTHETIC_EXPOSURE_US, None, ""
-    elif (folder / E2NERF_LLFF_POSES).is_file():
-        loaded = _load_e2nerf_llff(folder, config, k, notes)
-        pose_file, exposure_us = folder / E2NERF_LLFF_POSES, E2NERF_REAL_EXPOSURE_US
-        theta, theta_origin = E2NERF_REAL_THETA, "E2NeRF's real-data EDI value"
-    else:
-        raise FileNotFoundError(f"{folder}: neither {E2NERF_TRAIN_JSON} (synthetic) nor {E2NERF_LLFF_POSES} (real) found")
-    frames, files, c2w, intrinsics, depth_range = loaded
     if E2NERF_BINS % (k - 1) != 0:
         raise ValueError(f"{folder}: E2NeRF stores {E2NERF_BINS} event bins per frame; k - 1 must divide it, got k={k}")
-    h, w = frames[0].shape[:2]
-    events_file = e2nerf_events_file(folder)
-    bins = _e2nerf_bins(events_file, len(frames), h, w, k)
+    notes: List[str] = []
+    if (folder / e2nerf.TRAIN_TRANSFORMS).is_file():
+        synthetic = e2nerf.read_synthetic(folder)
+        files, events_file = synthetic.image_paths, synthetic.events_path
+        frames = _read_scene_frames(folder, files, config, notes, E2NERF_ALPHA_BACKGROUND)
+        h, w = frames[0].shape[:2]
+        c2w, _ = synthetic.latent_poses(k)
+        intrinsics, depth_range = synthetic.intrinsics(h, w), e2nerf.BLENDER_DEPTH_RANGE
+        pose_file, exposure_us, theta, theta_origin = synthetic.meta_path, E2NERF_SYNTHETIC_EXPOSURE_US, None, ""
+    elif (folder / e2nerf.POSES_BOUNDS_FILE).is_file():
+        files = e2nerf.real_images(folder)
+        frames = _read_scene_frames(folder, files, config, notes, E2NERF_ALPHA_BACKGROUND)
+        h, w = frames[0].shape[:2]
+        real = e2nerf.read_real(folder, E2NERF_BINS + 1, h, w, f"E2NeRF's {E2NERF_BINS} bins")
+        c2w = real.c2w[:, :: E2NERF_BINS // (k - 1)]  # the latents at the merged bins' edges
+        intrinsics, depth_range, events_file = real.intrinsics, real.depth_range, real.events_path
+        pose_file, exposure_us = real.poses_path, E2NERF_REAL_EXPOSURE_US
+        theta, theta_origin = E2NERF_REAL_THETA, "E2NeRF's real-data EDI value"
+    else:
+        raise FileNotFoundError(
+            f"{folder}: neither {e2nerf.TRAIN_TRANSFORMS} (synthetic) nor {e2nerf.POSES_BOUNDS_FILE} (real) found"
+        )
+    bins = e2nerf.merge_bins(e2nerf.read_event_bins(events_file, len(frames), h, w, E2NERF_BINS), k, events_file)
     indices = select_indices(len(frames), config, str(folder))
     all_exposures = _e2nerf_exposures(len(frames), files, exposure_us)
     exposures = [all_exposures[i] for i in indices]
@@ -807,7 +685,7 @@ def load_e2nerf(config: InputConfig, k: int) -> Capture:
 
 def load_evdeblurnerf(config: InputConfig, k: int) -> Capture:
     """Input form (c): an EvDeblurNeRF scene: blurry frames with exposures, raw events, a camera path."""
-    from edygs_ns.data.layouts.evdeblurnerf import EVENTS_FILE, TIMESTAMPS_FILE, read_evdeblurnerf_folder
+    from edygs_ns.preprocess.evdeblurnerf import EVENTS_FILE, TIMESTAMPS_FILE, read_evdeblurnerf_folder
 
     unit = config.evdeblurnerf_events_unit
     if config.events_time_unit != AUTO_UNIT:

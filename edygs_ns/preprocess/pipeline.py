@@ -42,11 +42,12 @@ from typing_extensions import Annotated
 from edygs_ns.events.accumulate import latent_times_us
 from edygs_ns.events.color import decode_to_linear
 from edygs_ns.events.contrast import ContrastAccumulator, ThetaChoice, choose_theta
-from edygs_ns.events.edi import EdiConfig, edi_from_frame
+from edygs_ns.events.edi import EdiConfig
 from edygs_ns.events.exposures import Exposure, read_exposures
 from edygs_ns.events.stream import bin_exposure
 from edygs_ns.geometry import Intrinsics
 from edygs_ns.io.images import UINT8_MAX, read_rgb_uint8, write_rgb_png
+from edygs_ns.preprocess.cache import write_edi_latents
 from edygs_ns.preprocess.colmap import ColmapConfig, ColmapResult, registration_message, run_colmap, with_calibration
 from edygs_ns.preprocess.inputs import Capture, InputConfig, calibration_path, load_capture, read_image
 from edygs_ns.preprocess.motion_check import check_camera_moves
@@ -164,7 +165,7 @@ def _input_signature(config: InputConfig) -> List[Dict[str, Any]]:
 
 def _evdeblurnerf_files(root: Path) -> List[Path]:
     """The files an EvDeblurNeRF scene's content depends on (not its edygs_cache/ of edygs-data)."""
-    from edygs_ns.data.layouts.evdeblurnerf import IMAGES_FOLDER
+    from edygs_ns.preprocess.evdeblurnerf import IMAGES_FOLDER
 
     files = [p for p in sorted(root.glob("*")) if p.is_file()] if root.is_dir() else [root]
     images = root / IMAGES_FOLDER
@@ -318,12 +319,7 @@ class Pipeline:
         (self.work / CONTRAST_JSON).write_text(json.dumps(choice.to_dict(), indent=2))
         edi_config = replace(self.config.edi, theta=choice.theta)
         with progress_bar("EDI latents", n) as advance:
-            for i in range(n):
-                latents = edi_from_frame(read_rgb_uint8(blurry[i]), maps[i], edi_config)
-                for j in range(self.k):
-                    pixels = np.clip(np.round(latents[j] * UINT8_MAX), 0, UINT8_MAX).astype(np.uint8)
-                    write_rgb_png(self.work / "latents" / latent_name(i, j), pixels)
-                advance()
+            write_edi_latents(blurry, maps, edi_config, self.latent_paths(), advance)
         maps.flush()
         del maps
         return (f"{n * self.k} latents from {n} frames (k={self.k}, theta={choice.theta:.3f} {choice.source}, "

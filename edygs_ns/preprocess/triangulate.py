@@ -18,8 +18,10 @@ are used instead, with a one-line warning that says why.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import shutil
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Dict, Literal, Optional, Sequence, Tuple
 
@@ -27,6 +29,7 @@ import numpy as np
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from edygs_ns.geometry import Intrinsics, c2w_opengl_to_colmap_w2c
+from edygs_ns.preprocess.cache import MANIFEST_NAME, CacheFolder
 from edygs_ns.preprocess.colmap import COLMAP_LOG_LEVEL, ColmapConfig, _extract, _match
 
 #: Where the given-pose initial points come from: triangulated from the latents, or random.
@@ -71,6 +74,12 @@ class TriangulatedPoints:
     mean_reprojection_error: float
     mean_track_length: float
     num_pairs: int
+
+    def summary(self) -> str:
+        """One line: how many points, how well they fit, from how many pairs."""
+        return (f"{len(self.xyz):,} points triangulated at the given poses (mean reprojection error "
+                f"{self.mean_reprojection_error:.2f} px, track length {self.mean_track_length:.1f}, "
+                f"{self.num_pairs} matched latent pairs)")
 
 
 @dataclass
@@ -254,13 +263,78 @@ def initial_points_at_poses(
         else:
             numbers = {"num_points": int(len(tri.xyz)), "mean_reprojection_error_px": tri.mean_reprojection_error,
                        "mean_track_length": tri.mean_track_length, "matched_pairs": tri.num_pairs}
-            summary = (f"{len(tri.xyz):,} points triangulated at the given poses (mean reprojection error "
-                       f"{tri.mean_reprojection_error:.2f} px, track length {tri.mean_track_length:.1f}, "
-                       f"{tri.num_pairs} matched latent pairs)")
-            return InitialPoints(tri.xyz, tri.rgb, "triangulated", summary, triangulated=numbers)
+            return InitialPoints(tri.xyz, tri.rgb, "triangulated", tri.summary(), triangulated=numbers)
         xyz, rgb, description = random_points()
         CONSOLE.print(f"[yellow]warning[/]: no triangulated initial points: {reason}; starting from {description} "
                       "instead", soft_wrap=True)
         return InitialPoints(xyz, rgb, "random", f"{description} (triangulation failed: {reason})", fallback_reason=reason)
     xyz, rgb, description = random_points()
     return InitialPoints(xyz, rgb, "random", description)
+
+
+#: Cache kind (under <scene>/edygs_cache/) of the points triangulated for a layout read directly.
+POINTS_CACHE_KIND = "initial_points"
+POINTS_FILE = "points.npz"
+
+
+def cached_points_at_poses(
+    scene_root: Path,
+    latent_paths: Sequence[Path],
+    c2w: np.ndarray,
+    intrinsics: Intrinsics,
+    colmap: Optional[ColmapConfig] = None,
+    config: Optional[TriangulationConfig] = None,
+) -> Tuple[Optional[TriangulatedPoints], str]:
+    """Points triangulated from a scene's latents at their given poses, computed once and cached.
+
+    For the layouts the dataparser reads directly (E2NeRF, EvDeblurNeRF): the cache folder is keyed
+    on the latents (name, size, mtime), the poses, the intrinsics and the settings; a failure is
+    cached too, so the reason is reported again without re-running COLMAP.
+
+    Args:
+        scene_root: the scene folder (the cache goes under its edygs_cache/).
+        latent_paths: N latent images, all in one folder, in time order.
+        c2w: [N, 4, 4] OpenGL camera-to-world of the latents.
+        intrinsics: their pinhole camera.
+        colmap: feature and matching settings (default: edygs-process's defaults).
+        config: triangulation settings (default: edygs-process's defaults).
+
+    Returns:
+        (points, one-line summary) on success; (None, the reason in one line) when triangulation
+        gave no usable cloud.
+    """
+    colmap = colmap if colmap is not None else ColmapConfig()
+    config = config if config is not None else TriangulationConfig()
+    paths = [Path(p) for p in latent_paths]
+    folders = {p.parent for p in paths}
+    if len(folders) != 1:
+        raise ValueError(f"cached_points_at_poses: the latents must share one folder, found {len(folders)}")
+    c2w = np.asarray(c2w, dtype=np.float64).reshape(-1, 4, 4)
+    params = json.loads(json.dumps({
+        "poses_sha1": hashlib.sha1(np.ascontiguousarray(c2w).tobytes()).hexdigest(),
+        "intrinsics": asdict(intrinsics), "colmap": asdict(colmap), "triangulation": asdict(config),
+    }, default=str))
+    cache = CacheFolder(scene_root, POINTS_CACHE_KIND, params, paths)
+    stored = cache.path / POINTS_FILE
+    if cache.is_complete():
+        manifest = json.loads((cache.path / MANIFEST_NAME).read_text())
+        if manifest.get("reason") is not None:
+            return None, str(manifest["reason"])
+        if stored.is_file():
+            with np.load(stored, allow_pickle=False) as data:
+                found = TriangulatedPoints(data["xyz"], data["rgb"], float(data["error"]), float(data["track"]),
+                                           int(data["pairs"]))
+            return found, found.summary()
+    cache.begin()
+    try:
+        points = triangulate_at_poses(folders.pop(), [p.name for p in paths], c2w, intrinsics, cache.path / "work",
+                                      colmap, config)
+    except TriangulationError as err:
+        shutil.rmtree(cache.path / "work", ignore_errors=True)
+        cache.finish({"reason": str(err)})
+        return None, str(err)
+    shutil.rmtree(cache.path / "work", ignore_errors=True)
+    np.savez(stored, xyz=points.xyz, rgb=points.rgb, error=points.mean_reprojection_error,
+             track=points.mean_track_length, pairs=points.num_pairs)
+    cache.finish({"summary": points.summary(), "reason": None})
+    return points, points.summary()

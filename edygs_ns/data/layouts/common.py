@@ -11,18 +11,22 @@ camera looks down -z), in the layout's own world frame (no nerfstudio orientatio
 
 from __future__ import annotations
 
-import json
-import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from edygs_ns.events.edi import EdiConfig
 from edygs_ns.geometry import POSE_SIZE, Intrinsics
+from edygs_ns.io.files import as_pose, load_json, numbered_files, require_files, require_key  # noqa: F401 (re-exported)
 
 #: The layout names a reader can produce.
-LAYOUT_NAMES: Tuple[str, ...] = ("processed", "e2nerf-synthetic", "e2nerf-real", "evdeblurnerf")
+#: The layout edygs-process writes; the others are read directly from their authors' folders.
+PROCESSED_LAYOUT = "processed"
+LAYOUT_NAMES: Tuple[str, ...] = (PROCESSED_LAYOUT, "e2nerf-synthetic", "e2nerf-real", "evdeblurnerf")
+#: Pixel encoding of the layouts read directly (E2NeRF and EvDeblurNeRF data are linear).
+DEFAULT_COLOR_SPACE = "linear"
 #: Key of SceneRecord.notes holding the scale of the Sim(3) that moved the ground-truth poses
 #: into the estimated poses' frame (estimated units per ground-truth unit).
 GT_ALIGNMENT_SCALE_NOTE = "gt_alignment_scale"
@@ -149,64 +153,6 @@ class SceneRecord:
             )
 
 
-def load_json(path: Path) -> Dict[str, Any]:
-    """Read a JSON object.
-
-    Raises:
-        FileNotFoundError: the file does not exist.
-        ValueError: the file is not valid JSON or not an object; the message names the file.
-    """
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: file not found")
-    try:
-        with open(path, encoding="utf-8") as handle:
-            data = json.load(handle)
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: not valid JSON ({err})") from err
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a JSON object at the top level, found {type(data).__name__}")
-    return data
-
-
-def require_key(meta: Dict[str, Any], key: str, source: Path) -> Any:
-    """meta[key], or a ValueError naming the file and the missing key."""
-    if key not in meta:
-        raise ValueError(f"{source}: missing required key {key!r}")
-    return meta[key]
-
-
-def require_files(paths: Sequence[Path], source: Path) -> None:
-    """Raise FileNotFoundError naming the first of ``paths`` that does not exist (listed in ``source``)."""
-    missing = [p for p in paths if not p.is_file()]
-    if missing:
-        raise FileNotFoundError(f"{source}: {len(missing)} listed image(s) not found, first: {missing[0]}")
-
-
-def as_pose(matrix: Any, source: Path, what: str) -> np.ndarray:
-    """A 4x4 (or 3x4) nested list as a [4, 4] float64 pose; ValueError naming file and item."""
-    arr = np.asarray(matrix, dtype=np.float64)
-    if arr.shape == (POSE_SIZE - 1, POSE_SIZE):
-        arr = np.concatenate([arr, np.array([[0.0, 0.0, 0.0, 1.0]])], axis=0)
-    if arr.shape != (POSE_SIZE, POSE_SIZE) or not np.all(np.isfinite(arr)):
-        raise ValueError(f"{source}: {what} is not a finite 4x4 transform matrix (shape {arr.shape})")
-    return arr
-
-
-def numbered_files(folder: Path, pattern: str) -> List[Tuple[int, Path]]:
-    """Files in ``folder`` whose name matches ``pattern`` (a regex with one integer group), by number.
-
-    Returns:
-        [(number, path)] sorted by number.
-    """
-    regex = re.compile(pattern)
-    found = []
-    for path in folder.iterdir() if folder.is_dir() else []:
-        match = regex.fullmatch(path.name)
-        if match:
-            found.append((int(match.group(1)), path))
-    return sorted(found)
-
-
 def uniform_latent_times(n_blurry: int, k: int) -> np.ndarray:
     """Normalised times [n * k] for layouts without timestamps.
 
@@ -236,18 +182,6 @@ def latent_times_from_fractions(fractions: np.ndarray) -> np.ndarray:
     return (slots / max(n * k - 1, 1)).reshape(-1)
 
 
-#: E2NeRF's event file: its preprocessing writes events.pt, its README names event.pt.
-E2NERF_EVENT_FILES = ("events.pt", "event.pt")
-
-
-def find_e2nerf_events(root: Path) -> Optional[Path]:
-    """The E2NeRF event file of a scene folder (events.pt, else event.pt), or None."""
-    for name in E2NERF_EVENT_FILES:
-        if (Path(root) / name).is_file():
-            return Path(root) / name
-    return None
-
-
 def nearest_times(query_c2w: np.ndarray, latent_c2w: np.ndarray, latent_times: np.ndarray) -> np.ndarray:
     """For each query pose, the time of the latent whose camera centre is nearest.
 
@@ -272,3 +206,15 @@ def latent_grid(n_blurry: int, k: int) -> Tuple[np.ndarray, np.ndarray]:
     latent = np.tile(np.arange(k, dtype=np.int64), n_blurry)
     return blurry, latent
 
+
+def layout_edi_config(
+    k: int, theta: Optional[float], default_theta: float, color_space: Optional[str], clip_max: float
+) -> EdiConfig:
+    """EDI settings of a layout read directly: the given Θ and encoding, else the layout's defaults
+    (Θ ``default_theta``, pixels "linear")."""
+    return EdiConfig(
+        k=k,
+        theta=float(theta if theta is not None else default_theta),
+        color_space=color_space or DEFAULT_COLOR_SPACE,  # type: ignore[arg-type]
+        clip_max=clip_max,
+    )

@@ -15,7 +15,7 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
-from edygs_ns.data.event_maps import load_event_maps_npy
+from edygs_ns.preprocess.cache import load_event_maps_npy
 from edygs_ns.data.layouts.common import (
     GT_ALIGNMENT_SCALE_NOTE,
     SceneRecord,

@@ -6,6 +6,9 @@ each source file's name, size and modification time, so editing a source or chan
 parameter gives a new folder; the stale folder of the same kind is removed. A folder counts
 as complete only once its ``manifest.json`` is written (the last step), so an interrupted run
 is recomputed rather than half-read. Nothing here runs per training iteration.
+
+The dataparser's layouts read directly (E2NeRF, EvDeblurNeRF) cache here; :func:`write_edi_latents`
+is the one EDI loop, shared with the ``edi`` step of ``edygs-process``.
 """
 
 from __future__ import annotations
@@ -14,13 +17,14 @@ import hashlib
 import json
 import shutil
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence
+from typing import Any, Callable, Dict, List, Optional, Sequence
 
 import numpy as np
-import torch
 
-from edygs_ns.io.images import read_rgb_uint8, save_rgb_uint8
 from edygs_ns.events.edi import EdiConfig, edi_from_frame
+from edygs_ns.io.images import UINT8_MAX, read_rgb_uint8, save_rgb_uint8, write_rgb_png
+from edygs_ns.preprocess.e2nerf import read_event_bins
+from edygs_ns.preprocess.steps import progress_bar
 
 #: Folder inside the scene folder that holds every cache.
 CACHE_DIR_NAME = "edygs_cache"
@@ -30,10 +34,6 @@ MANIFEST_NAME = "manifest.json"
 KEY_LENGTH = 12
 #: File name of cached event maps inside their cache folder.
 EVENT_MAPS_FILE = "event_maps.npy"
-#: E2NeRF's events.pt is [views, bins, H*W] (what its preprocessing writes), or [views, bins, H, W]
-#: (what its README describes).
-EVENTS_PT_NDIM = 3
-EVENTS_PT_GRID_NDIM = 4
 
 
 def _fingerprint(paths: Sequence[Path]) -> List[Dict[str, Any]]:
@@ -133,25 +133,6 @@ def load_event_maps_npy(path: Path, n_blurry: int, k: int, height: int, width: i
     return maps
 
 
-def _load_events_pt(path: Path, n_views: int, height: int, width: int) -> np.ndarray:
-    """Read E2NeRF's events.pt ([views, bins, H*W] or [views, bins, H, W] signed counts) as float32 [views, bins, H, W]."""
-    try:
-        data = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # torch raises several types for corrupt or non-tensor files
-        raise ValueError(f"{path}: cannot read as a torch tensor file ({err})") from err
-    if not isinstance(data, torch.Tensor):
-        raise ValueError(f"{path}: expected one tensor [views, bins, H*W], found {type(data).__name__}")
-    if data.ndim == EVENTS_PT_GRID_NDIM:
-        what = f"{n_views} blurry images of {width}x{height} pixels ([views, bins, H, W])"
-        check_event_maps_shape(data.shape, (n_views, None, height, width), path, what)
-    else:
-        what = f"{n_views} blurry images of {width}x{height} pixels ([views, bins, H*W])"
-        check_event_maps_shape(data.shape, (n_views, None, height * width), path, what)
-    if data.shape[1] < 1:
-        raise ValueError(f"{path}: event data has shape {tuple(data.shape)}: no event bins")
-    return data.to(torch.float32).reshape(n_views, data.shape[1], height, width).numpy()
-
-
 def cached_events_pt(events_pt: Path, n_views: int, height: int, width: int, scene_root: Path) -> np.ndarray:
     """E2NeRF's events.pt as event maps, converted once and cached as .npy.
 
@@ -182,7 +163,7 @@ def cached_events_pt(events_pt: Path, n_views: int, height: int, width: int, sce
         check_event_maps_shape(maps.shape, (n_views, None, height, width), events_pt, what)
         return maps
     CONSOLE.log(f"Converting {events_pt} to event maps (once; cached in {cache.path})")
-    maps = _load_events_pt(events_pt, n_views, height, width)
+    maps = read_event_bins(events_pt, n_views, height, width)
     cache.begin()
     np.save(cached, maps)
     cache.finish({"shape": list(maps.shape)})
@@ -240,7 +221,7 @@ def cached_edi_latents(
         [n][k] paths; entry [b][j] is latent j of exposure b (``<b:04d>_<j>.png``), in the same
         colour encoding as the blurry images.
     """
-    from nerfstudio.utils.rich_utils import CONSOLE, get_progress
+    from nerfstudio.utils.rich_utils import CONSOLE
 
     if event_maps.shape[1] != config.k - 1:
         raise ValueError(f"cached_edi_latents: event maps have {event_maps.shape[1]} bins, k={config.k} needs {config.k - 1}")
@@ -251,10 +232,32 @@ def cached_edi_latents(
         return paths
     CONSOLE.log(f"Computing EDI latents for {len(blurry_paths)} blurry frames (once; cached in {cache.path})")
     cache.begin()
-    with get_progress("EDI latents") as progress:
-        for b in progress.track(range(len(blurry_paths)), total=len(blurry_paths)):
-            latents = edi_from_frame(read_rgb_uint8(blurry_paths[b]), np.asarray(event_maps[b]), config)
-            for j in range(config.k):
-                save_rgb_uint8(latents[j], paths[b][j])
+    with progress_bar("EDI latents", len(blurry_paths)) as advance:
+        write_edi_latents(blurry_paths, event_maps, config, paths, advance)
     cache.finish()
     return paths
+
+
+def write_edi_latents(
+    blurry_paths: Sequence[Path],
+    event_maps: np.ndarray,
+    config: EdiConfig,
+    out_paths: Sequence[Sequence[Path]],
+    advance: Optional[Callable[[], None]] = None,
+) -> None:
+    """The EDI step of every route: latents of each blurry frame from its event bins, as 8-bit PNGs.
+
+    Args:
+        blurry_paths: n RGB blurry images (encoded as config.color_space).
+        event_maps: [n, k-1, H, W] signed counts (an array or a memory map).
+        config: EDI settings (Θ, k, colour space, clip).
+        out_paths: [n][k] output files; latent j of frame b goes to out_paths[b][j].
+        advance: called once per frame done (a progress bar's), or None.
+    """
+    for b in range(len(blurry_paths)):
+        latents = edi_from_frame(read_rgb_uint8(blurry_paths[b]), np.asarray(event_maps[b]), config)
+        out_paths[b][0].parent.mkdir(parents=True, exist_ok=True)
+        for j in range(config.k):
+            write_rgb_png(out_paths[b][j], np.clip(np.round(latents[j] * UINT8_MAX), 0, UINT8_MAX).astype(np.uint8))
+        if advance is not None:
+            advance()
