@@ -1,0 +1,126 @@
+"""The compiled CPU rasteriser: torch projection, C++ binning and compositing (``csrc/raster_cpu.cpp``).
+
+Split: the per-Gaussian projection (``projection.py``, O(N), its hand-written backward) stays in
+torch, so gradients reach means, quaternions, scales and the world-to-camera matrices (pose
+refinement) exactly as in the reference; the per-pixel work (tile binning, front-to-back
+compositing of D features + depth + alpha, and its backward) is one autograd Function whose
+forward and backward are compiled loops, multi-threaded over tiles. The rules (tiles, alpha
+clamp and cut-off, transmittance stop) are those of ``torch_backend.py``, the reference the
+parity tests compare against. Why this split and toolchain: docs/cpu_rasterizer.md.
+"""
+
+from __future__ import annotations
+
+from typing import List, Optional
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from edygs_ns.render.compiled import load_extension
+from edygs_ns.render.contract import (
+    ALPHA_MAX,
+    ALPHA_MIN,
+    DEFAULT_FAR,
+    DEFAULT_NEAR,
+    TRANSMITTANCE_MIN,
+    RasterOutputs,
+    check_inputs,
+)
+from edygs_ns.render.projection import project_gaussians
+from edygs_ns.render.torch_backend import CULL_MARGIN, MIN_ALPHA_FOR_DEPTH, MIN_OPACITY, TILE_SIZE
+
+#: the compositing rules handed to the kernel, in its order.
+RULES: List[float] = [ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN, CULL_MARGIN, MIN_OPACITY]
+
+
+def compiled_available() -> bool:
+    """Whether the C++ kernel is built (or builds now) on this machine."""
+    return load_extension() is not None
+
+
+class _CompiledRaster(torch.autograd.Function):
+    """[C, H, W, D + 2] composited features, depth sum and alpha; backward in C++ to the inputs."""
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx, means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, depths: Tensor,
+        radii: Tensor, size: tuple,
+    ) -> Tensor:
+        ext = load_extension()
+        width, height, tile = size
+        inputs = [t.detach().contiguous() for t in (means2d, conics, opacities, features, depths)]
+        out, offsets, ids, stops = ext.forward(*inputs, radii.contiguous(), width, height, tile, RULES)
+        ctx.size = size
+        ctx.save_for_backward(*inputs, radii, offsets, ids, stops, out)
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out: Tensor):  # type: ignore[override]
+        means2d, conics, opacities, features, depths, radii, offsets, ids, stops, out = ctx.saved_tensors
+        width, height, tile = ctx.size
+        grads = load_extension().backward(
+            means2d, conics, opacities, features, depths, radii.contiguous(), width, height, tile, RULES,
+            offsets, ids, stops, out, grad_out.contiguous(),
+        )
+        return (*grads, None, None)
+
+
+def rasterize_cpu(
+    means: Float[Tensor, "N 3"],
+    quats: Float[Tensor, "N 4"],
+    scales: Float[Tensor, "N 3"],
+    opacities: Float[Tensor, "N"],
+    features: Tensor,
+    viewmats: Float[Tensor, "C 4 4"],
+    Ks: Float[Tensor, "C 3 3"],
+    width: int,
+    height: int,
+    backgrounds: Optional[Float[Tensor, "C D"]] = None,
+    near_plane: float = DEFAULT_NEAR,
+    far_plane: float = DEFAULT_FAR,
+) -> RasterOutputs:
+    """Differentiable CPU rasteriser, compiled; same contract and rules as ``rasterize_torch``.
+
+    Args:
+        means: [N, 3] world positions. quats: [N, 4] wxyz. scales: [N, 3] activated, world units.
+        opacities: [N] activated. features: [N, D] or [C, N, D], any D.
+        viewmats: [C, 4, 4] world-to-camera (OpenCV). Ks: [C, 3, 3] pixel intrinsics.
+        width, height: image size in pixels.
+        backgrounds: [C, D] colour behind the Gaussians, or None for zeros.
+        near_plane, far_plane: depth range in world units.
+
+    Returns:
+        RasterOutputs; gradients reach means, quats, scales, opacities, features and viewmats,
+        and ``means2d.grad`` holds dL/d(pixel centre) after backward.
+
+    Raises:
+        RuntimeError: the extension is not built (check ``compiled_available()`` first).
+    """
+    check_inputs(means, quats, scales, opacities, features, viewmats, Ks)
+    if means.device.type != "cpu":
+        raise ValueError(f"rasterize_cpu: tensors are on {means.device}, the compiled rasteriser runs on the CPU")
+    if load_extension() is None:
+        raise RuntimeError("rasterize_cpu: the compiled CPU rasteriser is not built; use rasterize_torch")
+    n_cams, n_channels = viewmats.shape[0], features.shape[-1]
+    if backgrounds is not None and tuple(backgrounds.shape) != (n_cams, n_channels):
+        raise ValueError(
+            f"rasterize: backgrounds has shape {tuple(backgrounds.shape)}, expected [C={n_cams}, D={n_channels}]"
+        )
+    proj = project_gaussians(means, quats, scales, viewmats, Ks, width, height, near_plane, far_plane)
+    means2d = proj.means2d
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    dtype = means2d.dtype
+    image = _CompiledRaster.apply(
+        means2d, proj.conics, opacities.to(dtype), features.to(dtype), proj.depths, proj.radii,
+        (width, height, TILE_SIZE),
+    )
+    colour, depth_sum, alpha = image[..., :n_channels], image[..., n_channels : n_channels + 1], image[..., -1:]
+    if backgrounds is not None:
+        colour = colour + (1.0 - alpha) * backgrounds[:, None, None, :]
+    depth = depth_sum / alpha.clamp(min=MIN_ALPHA_FOR_DEPTH)
+    return RasterOutputs(
+        render=colour, depth=depth, alpha=alpha, means2d=means2d, radii=proj.radii, visible=proj.radii > 0
+    )
