@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import replace
 from pathlib import Path
 
@@ -10,6 +11,11 @@ import numpy as np
 import pytest
 
 from edygs_ns.data.dataparser import EdygsDataParserConfig
+from edygs_ns.data.layouts import read_scene
+from edygs_ns.events.exposures import read_exposures
+from edygs_ns.events.readers import read_events
+from edygs_ns.preprocess import triangulate as triangulate_module
+from edygs_ns.preprocess.e2nerf_writer import write_e2nerf_real
 from edygs_ns.geometry import Intrinsics
 from edygs_ns.events.edi import EdiConfig
 from edygs_ns.preprocess.inputs import InputConfig
@@ -125,3 +131,71 @@ def test_featureless_latents_raise_a_one_line_reason(tmp_path: Path) -> None:
     with pytest.raises(TriangulationError, match=r"^no pair of latents matched \(0 SIFT features over 4 latents\)$"):
         triangulate_at_poses(tmp_path, names, c2w, Intrinsics(32, 24, 30.0, 30.0, 16.0, 12.0), tmp_path / "work",
                              ColmapConfig(), TriangulationConfig())
+
+
+# ------------------------------------------------- layouts read directly (E2NeRF real, written from the capture)
+
+
+@pytest.fixture(scope="module")
+def e2nerf_real(synth: SynthConfig, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_e2nerf_real(synth.output_dir, tmp_path_factory.mktemp("e2nerf") / "real")
+
+
+def test_e2nerf_real_writer_keeps_poses_events_and_ground_truth(synth: SynthConfig, e2nerf_real: Path) -> None:
+    record = read_scene(e2nerf_real)
+    assert record.layout == "e2nerf-real" and record.k == 5 and record.num_blurry == TINY["n_frames"]
+    gt = json.loads((synth.output_dir / "gt" / "transforms.json").read_text())
+    raw = {(f["blurry_index"], f["latent_index"]): np.array(f["transform_matrix"]) for f in gt["frames"]}
+    # the raw capture's k = 3 latents sit at the layout's latents 0, 2 and 4 (start, centre, end)
+    for b in range(TINY["n_frames"]):
+        for j in range(TINY["k"]):
+            np.testing.assert_allclose(record.latent_c2w[b * 5 + 2 * j], raw[(b, j)], atol=1e-9)
+    events = read_events(synth.output_dir / "events.h5")
+    exposures = read_exposures(synth.output_dir / "exposures.csv")
+    for b in (0, TINY["n_frames"] - 1):
+        inside = (events.t >= exposures[b].start_us) & (events.t < exposures[b].end_us)
+        assert np.asarray(record.event_maps[b]).sum() == pytest.approx(float(events.p[inside].sum()), abs=2.0)
+    moved = json.loads((e2nerf_real / "gt" / "transforms.json").read_text())["frames"]
+    assert {(f["blurry_index"], f["latent_index"]): f["time_us"] for f in moved}[(1, 1)] == 200_000 + 50_002
+
+
+def test_layout_read_directly_starts_from_points_triangulated_at_its_poses(
+    synth: SynthConfig, e2nerf_real: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    parser = EdygsDataParserConfig(data=e2nerf_real).setup()
+    out = parser.get_dataparser_outputs("train")
+    record = parser.scene()
+    assert len(out.metadata["points3D_xyz"]) == len(record.points_xyz) >= TriangulationConfig().min_points
+    assert "points triangulated at the given poses" in record.notes["initial_points"]
+    depth = np.linalg.norm(record.points_xyz[:, None] - record.latent_c2w[None, :, :3, 3], axis=-1).min(axis=1)
+    rel = _distance_to_room(synth, record.points_xyz.astype(np.float64)) / depth
+    assert np.median(rel) < 0.03 and np.mean(rel < 0.1) > 0.85
+    # computed once: a second parser reads the cache and never runs COLMAP
+    def fail(*args, **kwargs):
+        raise AssertionError("triangulation ran again")
+
+    monkeypatch.setattr(triangulate_module, "triangulate_at_poses", fail)
+    again = EdygsDataParserConfig(data=e2nerf_real).setup()
+    again.get_dataparser_outputs("train")
+    np.testing.assert_array_equal(again.scene().points_xyz, record.points_xyz)
+    random = EdygsDataParserConfig(data=e2nerf_real, initial_points="random", num_random_points=RANDOM_POINTS).setup()
+    assert len(random.get_dataparser_outputs("train").metadata["points3D_xyz"]) == RANDOM_POINTS
+
+
+def test_layout_without_features_falls_back_to_random_points_with_one_warning(
+    e2nerf_real: Path, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    import torch
+
+    flat = tmp_path / "flat"
+    shutil.copytree(e2nerf_real, flat, ignore=shutil.ignore_patterns("edygs_cache"))
+    for image in (flat / "images").iterdir():
+        write_rgb_png(image, np.full((TINY["height"], TINY["width"], 3), 128, np.uint8))
+    bins = torch.load(flat / "events.pt")
+    torch.save(torch.zeros_like(bins), flat / "events.pt")
+    parser = EdygsDataParserConfig(data=flat, num_random_points=RANDOM_POINTS).setup()
+    out = parser.get_dataparser_outputs("train")
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("warning: ")]
+    assert len(lines) == 1 and "no triangulated initial points (no pair of latents matched" in lines[0]
+    assert f"starting from {RANDOM_POINTS} random points" in lines[0]
+    assert len(out.metadata["points3D_xyz"]) == RANDOM_POINTS and parser.scene().points_xyz is None

@@ -680,6 +680,8 @@ def load_e2nerf(config: InputConfig, k: int) -> Capture:
         depth_range=depth_range,
     )
     capture.input_paths = [pose_file, events_file] + [files[i] for i in indices]
+    gt_dir = folder / GT_DIR_NAME  # ground truth in the raw-capture format (preprocess.e2nerf_writer)
+    capture.gt_dir = gt_dir if (gt_dir / GT_TRANSFORMS_NAME).is_file() else None
     return capture
 
 
