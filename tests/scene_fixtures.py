@@ -17,6 +17,7 @@ import torch
 from PIL import Image
 
 from edygs_ns.io.ply import write_ply_points
+from edygs_ns.preprocess.llff import c2w_to_rows
 
 #: Exposure length and gap between exposures of the processed fixture, µs.
 EXPOSURE_US = 40_000
@@ -212,16 +213,6 @@ def write_e2nerf_synthetic_scene(
     )  # fmt: skip
 
 
-def opengl_to_llff(c2w: np.ndarray) -> np.ndarray:
-    """OpenGL c2w [N, 4, 4] -> LLFF [N, 3, 4] with rotation columns (down, right, back)."""
-    out = np.zeros((len(c2w), 3, 4))
-    out[:, :, 0] = -c2w[:, :3, 1]
-    out[:, :, 1] = c2w[:, :3, 0]
-    out[:, :, 2] = c2w[:, :3, 2]
-    out[:, :, 3] = c2w[:, :3, 3]
-    return out
-
-
 def write_e2nerf_real_scene(
     root: Path, n_views: int = 3, k: int = 5, height: int = 6, width: int = 10, seed: int = 0
 ) -> FixtureScene:
@@ -229,11 +220,7 @@ def write_e2nerf_real_scene(
     rng = np.random.default_rng(seed)
     root.mkdir(parents=True, exist_ok=True)
     c2w = _trajectory(n_views * k)
-    llff = opengl_to_llff(c2w)
-    hwf = np.broadcast_to(np.array([height, width, FOCAL_PX])[None, :, None], (len(c2w), 3, 1))
-    rows = np.concatenate([np.concatenate([llff, hwf], axis=2).reshape(len(c2w), 15),
-                           np.tile([LLFF_NEAR, LLFF_FAR], (len(c2w), 1))], axis=1)  # fmt: skip
-    np.save(root / "poses_bounds.npy", rows)
+    np.save(root / "poses_bounds.npy", c2w_to_rows(c2w, height, width, FOCAL_PX, LLFF_NEAR, LLFF_FAR))
     blurry_files = [_save(root / f"images/{5 * v:03d}.jpg", _random_rgb(rng, height, width)) for v in range(n_views)]
     event_maps = _random_counts(rng, (n_views, k - 1, height, width))
     torch.save(torch.from_numpy(event_maps).reshape(n_views, k - 1, height * width), root / "events.pt")

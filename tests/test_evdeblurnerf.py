@@ -25,6 +25,7 @@ from edygs_ns.preprocess.evdeblurnerf import detect_events_unit, read_evdeblurne
 from edygs_ns.events.accumulate import latent_times_us
 from edygs_ns.events.edi import EdiConfig
 from edygs_ns.preprocess.inputs import InputConfig
+from edygs_ns.preprocess.llff import c2w_to_rows
 from edygs_ns.preprocess.pipeline import ProcessConfig, process
 
 W, H, FOCAL = 24, 16, 30.0
@@ -54,14 +55,7 @@ def c2w_at(t_us: np.ndarray) -> np.ndarray:
 
 def llff_rows(c2w: np.ndarray, near: float = 1.0, far: float = 6.0) -> np.ndarray:
     """OpenGL poses as LLFF poses_bounds rows: rotation columns (down, right, back), hwf, near, far."""
-    mats = np.zeros((len(c2w), 3, 5))
-    mats[:, :, 0] = -c2w[:, :3, 1]
-    mats[:, :, 1] = c2w[:, :3, 0]
-    mats[:, :, 2] = c2w[:, :3, 2]
-    mats[:, :, 3] = c2w[:, :3, 3]
-    mats[:, :, 4] = [H, W, FOCAL]
-    bounds = np.tile([near, far], (len(c2w), 1))
-    return np.concatenate([mats.reshape(len(c2w), -1), bounds], axis=1)
+    return c2w_to_rows(c2w, H, W, FOCAL, near, far)
 
 
 @dataclass

@@ -28,7 +28,7 @@ from edygs_ns.events.accumulate import exposure_bins
 from edygs_ns.events.exposures import Exposure, read_exposures
 from edygs_ns.events.readers import open_event_source
 from edygs_ns.io.images import write_rgb_png
-from edygs_ns.preprocess import e2nerf
+from edygs_ns.preprocess import e2nerf, llff
 from edygs_ns.preprocess.frames import read_frames
 from edygs_ns.preprocess.inputs import (
     E2NERF_FRAME_PERIOD_US, E2NERF_REAL_EXPOSURE_US, GT_DIR_NAME, GT_TRANSFORMS_NAME, SCENE_JSON_NAME,
@@ -48,16 +48,6 @@ def nominal_clock(exposures: Sequence[Exposure], times_us: np.ndarray) -> np.nda
     starts = np.arange(len(exposures), dtype=np.float64) * E2NERF_FRAME_PERIOD_US
     nominal = np.stack([starts, starts + E2NERF_REAL_EXPOSURE_US], axis=1).reshape(-1)
     return np.round(np.interp(np.asarray(times_us, dtype=np.float64), raw, nominal)).astype(np.int64)
-
-
-def _opengl_to_llff(c2w: np.ndarray) -> np.ndarray:
-    """OpenGL c2w [N, 4, 4] as LLFF [N, 3, 4] (rotation columns down, right, back; then t)."""
-    out = np.zeros((len(c2w), 3, 4))
-    out[:, :, 0] = -c2w[:, :3, 1]
-    out[:, :, 1] = c2w[:, :3, 0]
-    out[:, :, 2] = c2w[:, :3, 2]
-    out[:, :, 3] = c2w[:, :3, 3]
-    return out
 
 
 def _depth_bounds(raw: Path, centres: np.ndarray) -> List[float]:
@@ -103,9 +93,7 @@ def write_e2nerf_real(raw: Path, output: Path) -> Path:
     gt = raw / GT_DIR_NAME
     poses = poses_from_transforms(gt / GT_TRANSFORMS_NAME, exposures, K, (height, width))
     c2w = poses.c2w.reshape(-1, 4, 4)
-    hwf = np.broadcast_to(np.array([height, width, poses.intrinsics.fl_x], dtype=np.float64)[None, :, None], (len(c2w), 3, 1))
-    rows = np.concatenate([np.concatenate([_opengl_to_llff(c2w), hwf], axis=2).reshape(len(c2w), -1),
-                           np.tile(_depth_bounds(raw, c2w[:, :3, 3]), (len(c2w), 1))], axis=1)
+    rows = llff.c2w_to_rows(c2w, height, width, poses.intrinsics.fl_x, *_depth_bounds(raw, c2w[:, :3, 3]))
     np.save(output / e2nerf.POSES_BOUNDS_FILE, rows)
     shutil.copytree(gt, output / GT_DIR_NAME)
     meta = json.loads((output / GT_DIR_NAME / GT_TRANSFORMS_NAME).read_text())

@@ -59,6 +59,18 @@ def rows_to_c2w(rows: np.ndarray) -> np.ndarray:
     return llff_to_opengl(rows[:, :POSE_COLUMNS].reshape(-1, LLFF_ROWS, LLFF_COLS))
 
 
+def c2w_to_rows(c2w: np.ndarray, height: int, width: int, focal: float, near: float, far: float) -> np.ndarray:
+    """OpenGL camera-to-world [N, 4, 4] as LLFF rows [N, 17] (the inverse of :func:`rows_to_c2w`):
+    rotation columns (down, right, back), t, hwf = (height, width, focal), then near and far."""
+    mats = np.zeros((len(c2w), LLFF_ROWS, LLFF_COLS))
+    mats[:, :, 0] = -c2w[:, :3, 1]
+    mats[:, :, 1] = c2w[:, :3, 0]
+    mats[:, :, 2] = c2w[:, :3, 2]
+    mats[:, :, 3] = c2w[:, :3, 3]
+    mats[:, :, 4] = [height, width, focal]
+    return np.concatenate([mats.reshape(len(c2w), -1), np.tile([near, far], (len(c2w), 1))], axis=1)
+
+
 def rows_intrinsics(rows: np.ndarray, height: int, width: int) -> Intrinsics:
     """Pinhole camera of the first row's hwf, for stored images of width x height: the focal
     length scaled by width / hwf width, the principal point at the image centre."""
