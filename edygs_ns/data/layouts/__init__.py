@@ -7,9 +7,11 @@ from pathlib import Path
 from typing import Callable, Dict, Optional, Tuple
 
 from edygs_ns.data.layouts.common import LAYOUT_NAMES, SceneRecord
-from edygs_ns.data.layouts.e2nerf_real import is_e2nerf_real, read_e2nerf_real
-from edygs_ns.data.layouts.e2nerf_synthetic import is_e2nerf_synthetic, read_e2nerf_synthetic
-from edygs_ns.data.layouts.evdeblurnerf import is_evdeblurnerf, read_evdeblurnerf
+from edygs_ns.data.layouts.e2nerf_real import read_e2nerf_real
+from edygs_ns.data.layouts.e2nerf_synthetic import read_e2nerf_synthetic
+from edygs_ns.data.layouts.evdeblurnerf import read_evdeblurnerf
+from edygs_ns.preprocess import e2nerf
+from edygs_ns.preprocess.evdeblurnerf import is_evdeblurnerf
 from edygs_ns.data.layouts.processed import DEFAULT_EVENT_MAPS_FILE, TRANSFORMS_FILE, is_processed, read_processed
 
 #: What each layout needs, quoted when a folder matches none.
@@ -27,8 +29,8 @@ PROCESSED_MARKER_KEYS = ("event_maps", "exposures", "k")
 #: Layout name -> (detector, reader) in detection order.
 _LAYOUTS: Dict[str, Tuple[Callable[[Path], bool], Callable[..., SceneRecord]]] = {
     "processed": (is_processed, read_processed),
-    "e2nerf-synthetic": (is_e2nerf_synthetic, read_e2nerf_synthetic),
-    "e2nerf-real": (is_e2nerf_real, read_e2nerf_real),
+    "e2nerf-synthetic": (e2nerf.is_synthetic, read_e2nerf_synthetic),
+    "e2nerf-real": (e2nerf.is_real, read_e2nerf_real),
     "evdeblurnerf": (is_evdeblurnerf, read_evdeblurnerf),
 }
 

@@ -13,13 +13,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
 from edygs_ns.events.edi import EdiConfig
 from edygs_ns.geometry import POSE_SIZE, Intrinsics
-from edygs_ns.io.files import as_pose, load_json, numbered_files, require_files, require_key  # noqa: F401 (re-exported)
 
 #: The layout names a reader can produce.
 #: The layout edygs-process writes; the others are read directly from their authors' folders.

@@ -19,7 +19,6 @@ from edygs_ns.preprocess.cache import cached_edi_latents, cached_events_pt
 
 #: Default contrast threshold: the Θ of E2NeRF's EDI.py.
 DEFAULT_THETA = e2nerf.REAL_THETA
-is_e2nerf_real = e2nerf.is_real
 
 
 def read_e2nerf_real(

@@ -31,7 +31,6 @@ from edygs_ns.preprocess.cache import cached_edi_latents, cached_events_pt, cach
 BACKGROUND = None
 #: Default contrast threshold for E2NeRF synthetic data.
 DEFAULT_THETA = e2nerf.SYNTHETIC_THETA
-is_e2nerf_synthetic = e2nerf.is_synthetic
 
 
 def _read_test_views(scene: e2nerf.SyntheticScene, latent_c2w: np.ndarray, latent_times: np.ndarray) -> Optional[ViewSet]:

@@ -22,7 +22,6 @@ from edygs_ns.preprocess.evdeblurnerf import (
     EVENTS_FILE,
     TIMESTAMPS_FILE,
     EvDeblurNeRFScene,
-    is_evdeblurnerf,  # noqa: F401 (the layout's detector)
     read_evdeblurnerf_folder,
 )
 

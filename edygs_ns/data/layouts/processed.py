@@ -16,15 +16,8 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 
 from edygs_ns.preprocess.cache import load_event_maps_npy
-from edygs_ns.data.layouts.common import (
-    GT_ALIGNMENT_SCALE_NOTE,
-    SceneRecord,
-    ViewSet,
-    as_pose,
-    load_json,
-    require_files,
-    require_key,
-)
+from edygs_ns.data.layouts.common import GT_ALIGNMENT_SCALE_NOTE, PROCESSED_LAYOUT, SceneRecord, ViewSet
+from edygs_ns.io.files import as_pose, load_json, require_files, require_key
 from edygs_ns.io.ply import read_ply_points
 from edygs_ns.geometry import Intrinsics, align_poses, apply_sim3
 
@@ -242,7 +235,7 @@ def read_processed(root: Path, theta: Optional[float] = None, color_space: Optio
         points_xyz, points_rgb = read_ply_points(root / (ply_name or DEFAULT_PLY_FILE))
     record = SceneRecord(
         root=root,
-        layout="processed",
+        layout=PROCESSED_LAYOUT,
         intrinsics=intrinsics,
         k=k,
         theta=float(theta if theta is not None else require_key(meta, "theta", source)),
