@@ -8,7 +8,11 @@ as complete only once its ``manifest.json`` is written (the last step), so an in
 is recomputed rather than half-read. Nothing here runs per training iteration.
 
 The dataparser's layouts read directly (E2NeRF, EvDeblurNeRF) cache here; :func:`write_edi_latents`
-is the one EDI loop, shared with the ``edi`` step of ``edygs-process``.
+is the one EDI loop, shared with the ``edi`` step of ``edygs-process``. That command's resumable
+steps (:mod:`.steps`) keep their own record: they build one output folder from inputs kept
+elsewhere (so their fingerprints name absolute paths, and a changed finished step is an error, not
+a silent recompute), while these caches sit beside their sources (keyed on file names, so a moved
+scene keeps its cache) and are simply rebuilt when stale.
 """
 
 from __future__ import annotations
