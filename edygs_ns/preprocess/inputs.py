@@ -19,7 +19,8 @@ Input forms:
     sets the normalised latent times. As E2NeRF reads them: synthetic frames keep their stored
     RGB (alpha dropped, its ``white_bkgd = False``) and their latents are sub-frames 0, 5, 9,
     13, 17; real data's EDI uses Θ = 0.3 (:attr:`Capture.default_theta`; the pre-binned events
-    give no Θ estimate).
+    give no Θ estimate). :mod:`.e2nerf` reads the folder (the dataparser's layouts use it too); a
+    ``gt/`` folder in the raw-capture format beside it (:mod:`.e2nerf_writer`) is copied as ground truth.
   - ``--evdeblurnerf DIR``: an EvDeblurNeRF scene (``images_1/`` with ``timestamps.npz``,
     ``poses_bounds.npy``, ``events.h5``; :mod:`edygs_ns.preprocess.evdeblurnerf` describes
     the format and its sources). Raw events with real exposure times, so any k works. The
