@@ -190,73 +190,84 @@ void bin(const Scene<scalar_t>& s, std::vector<int64_t>& offsets, std::vector<in
   }
 }
 
+// Number of composited feature channels (D features + depth) known at compile time: NC > 0 fuses
+// the channel loops into the pixel loop (the common D = 3, 4); NC = 0 reads it at run time.
+template <int NC>
+inline int64_t channels(int64_t runtime) { return NC > 0 ? NC : runtime; }
+
 // Forward of one tile. acc: [F, P] (features, depth, alpha); stop: [P] list index of the Gaussian
-// that ended the pixel (excluded), else the list length; pixels outside the image start done.
-// A Gaussian is evaluated on the rows of the tile its ellipse box reaches: pixels [lo, hi) of the
-// row-major tile, one flat loop the compiler vectorises.
-template <typename scalar_t, int TS>
+// that ended the pixel (excluded), else the list length. A finished pixel (or one outside the
+// image) has transmittance 0, which no later Gaussian passes. A Gaussian is evaluated on the rows
+// of the tile its ellipse box reaches: pixels [lo, hi) of the row-major tile, one flat loop the
+// compiler vectorises.
+template <typename scalar_t, int TS, int NC>
 void composite_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count, int tx, int ty,
-                    const Rules& rules, scalar_t* acc, scalar_t* trans, int32_t* stop, int32_t* done) {
+                    const Rules& rules, scalar_t* acc, int32_t* stop) {
   constexpr int P = TS * TS;
-  const int64_t stride = s.stride(), d = s.n_feat, n_ch = d + 2;
+  constexpr int kCheckEvery = 8;  // Gaussians between tests for a finished tile
+  const int64_t stride = s.stride(), nc = channels<NC>(s.n_feat + 1);
   const int xb = tx * TS, yb = ty * TS;
-  int n_done = 0;
-  alignas(64) scalar_t pxs[P], pys[P], w[P];
+  alignas(64) scalar_t pxs[P], pys[P], w[P], trans[P];
   for (int p = 0; p < P; ++p) {
     pxs[p] = static_cast<scalar_t>(xb + p % TS) + scalar_t(0.5);
     pys[p] = static_cast<scalar_t>(yb + p / TS) + scalar_t(0.5);
-    trans[p] = 1;
+    trans[p] = (xb + p % TS >= s.width || yb + p / TS >= s.height) ? scalar_t(0) : scalar_t(1);
     stop[p] = count;
-    done[p] = (xb + p % TS >= s.width || yb + p / TS >= s.height) ? 1 : 0;
-    n_done += done[p];
   }
-  std::fill(acc, acc + n_ch * P, scalar_t(0));
+  std::fill(acc, acc + (nc + 1) * P, scalar_t(0));
+  scalar_t* acc_alpha = acc + nc * P;
   const scalar_t amax = rules.alpha_max, amin = rules.alpha_min, tmin = rules.trans_min;
-  for (int32_t k = 0; k < count && n_done < P; ++k) {
+  for (int32_t k = 0; k < count; ++k) {
+    if (k % kCheckEvery == 0 && k > 0) {
+      scalar_t live = 0;
+#pragma omp simd reduction(max : live)
+      for (int p = 0; p < P; ++p) live = live > trans[p] ? live : trans[p];
+      if (live == 0) break;
+    }
     const int32_t id = list[k];
     const scalar_t* rec = &s.records[id * stride];
     const int lo = std::max(s.rows[2 * id] - yb, 0) * TS, hi = (std::min(s.rows[2 * id + 1] - yb, TS - 1) + 1) * TS;
     const scalar_t mx = rec[0], my = rec[1], a = rec[2], b = rec[3], c = rec[4], o = rec[5];
     const scalar_t* f = rec + kHead;
-    int finished = 0;
-#pragma omp simd reduction(+ : finished)
+#pragma omp simd
     for (int p = lo; p < hi; ++p) {
-      const scalar_t power = power_at(pxs[p] - mx, pys[p] - my, a, b, c);
-      scalar_t alpha = o * exp_row(power);
+      scalar_t alpha = o * exp_row(power_at(pxs[p] - mx, pys[p] - my, a, b, c));
       alpha = alpha < amax ? alpha : amax;
       const scalar_t t = trans[p];
       const scalar_t next = t * (scalar_t(1) - alpha);
-      const bool ok = (done[p] == 0) & (alpha > amin);
+      const bool ok = (t > 0) & (alpha > amin);
       const bool fin = ok & (next <= tmin);
       const bool inc = ok & !fin;
-      w[p] = inc ? alpha * t : scalar_t(0);
-      trans[p] = inc ? next : t;
-      done[p] = fin ? 1 : done[p];
+      const scalar_t wi = inc ? alpha * t : scalar_t(0);
+      trans[p] = fin ? scalar_t(0) : (inc ? next : t);
       stop[p] = fin ? k : stop[p];
-      finished += fin ? 1 : 0;
+      acc_alpha[p] += wi;
+      if constexpr (NC > 0) {
+        for (int ch = 0; ch < NC; ++ch) acc[ch * P + p] += wi * f[ch];
+      } else {
+        w[p] = wi;
+      }
     }
-    n_done += finished;
-    for (int64_t ch = 0; ch <= d; ++ch) {
-      const scalar_t fc = f[ch];
-      scalar_t* o_ch = acc + ch * P;
+    if constexpr (NC == 0) {
+      for (int64_t ch = 0; ch < nc; ++ch) {
+        const scalar_t fc = f[ch];
+        scalar_t* o_ch = acc + ch * P;
 #pragma omp simd
-      for (int p = lo; p < hi; ++p) o_ch[p] += w[p] * fc;
+        for (int p = lo; p < hi; ++p) o_ch[p] += w[p] * fc;
+      }
     }
-    scalar_t* o_alpha = acc + (d + 1) * P;
-#pragma omp simd
-    for (int p = lo; p < hi; ++p) o_alpha[p] += w[p];
   }
 }
 
 // Backward of one tile: per-intersection gradients [count, K] with K = 6 + D + 1:
 // d/d mean x, y, d/d conic a, b, c, d/d log(opacity), d/d features, d/d depth.
 // g: [F, P] dL/d(acc); total: [P] g . acc (the gradient-weighted composite of every Gaussian).
-template <typename scalar_t, int TS>
+template <typename scalar_t, int TS, int NC>
 void backward_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count, int tx, int ty,
                    const Rules& rules, const scalar_t* g, const scalar_t* total, const int32_t* stop,
                    scalar_t* grads) {
   constexpr int P = TS * TS;
-  const int64_t stride = s.stride(), d = s.n_feat, n_k = kHead + d + 1;
+  const int64_t stride = s.stride(), nc = channels<NC>(s.n_feat + 1), n_k = kHead + nc;
   const int xb = tx * TS, yb = ty * TS;
   alignas(64) scalar_t pxs[P], pys[P], w[P], h[P], trans[P], prefix[P];
   int32_t last = 0;
@@ -268,7 +279,7 @@ void backward_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count,
     last = std::max(last, stop[p]);
   }
   const scalar_t amax = rules.alpha_max, amin = rules.alpha_min;
-  const scalar_t* g_alpha_ch = g + (d + 1) * P;  // the alpha channel's feature is 1
+  const scalar_t* g_alpha_ch = g + nc * P;  // the alpha channel's feature is 1
   for (int32_t k = 0; k < std::min(last, count); ++k) {
     const int32_t id = list[k];
     const scalar_t* rec = &s.records[id * stride];
@@ -276,17 +287,29 @@ void backward_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count,
     const scalar_t mx = rec[0], my = rec[1], a = rec[2], b = rec[3], c = rec[4], o = rec[5];
     const scalar_t* f = rec + kHead;
     scalar_t* out = grads + static_cast<int64_t>(k) * n_k;
+    if constexpr (NC == 0) {
 #pragma omp simd
-    for (int p = lo; p < hi; ++p) h[p] = g_alpha_ch[p];
-    for (int64_t ch = 0; ch <= d; ++ch) {
-      const scalar_t fc = f[ch];
-      const scalar_t* g_ch = g + ch * P;
+      for (int p = lo; p < hi; ++p) h[p] = g_alpha_ch[p];
+      for (int64_t ch = 0; ch < nc; ++ch) {
+        const scalar_t fc = f[ch];
+        const scalar_t* g_ch = g + ch * P;
 #pragma omp simd
-      for (int p = lo; p < hi; ++p) h[p] += g_ch[p] * fc;
+        for (int p = lo; p < hi; ++p) h[p] += g_ch[p] * fc;
+      }
     }
     scalar_t s_mx = 0, s_my = 0, s_a = 0, s_b = 0, s_c = 0, s_lo = 0;
-#pragma omp simd reduction(+ : s_mx, s_my, s_a, s_b, s_c, s_lo)
+    // feature sums as scalars (an array reduction is combined lane by lane, ~3x slower here)
+    static_assert(NC <= 5, "fused channel count above 5");
+    scalar_t s_f0 = 0, s_f1 = 0, s_f2 = 0, s_f3 = 0, s_f4 = 0;
+#pragma omp simd reduction(+ : s_mx, s_my, s_a, s_b, s_c, s_lo, s_f0, s_f1, s_f2, s_f3, s_f4)
     for (int p = lo; p < hi; ++p) {
+      scalar_t hp;
+      if constexpr (NC > 0) {
+        hp = g_alpha_ch[p];
+        for (int ch = 0; ch < NC; ++ch) hp += g[ch * P + p] * f[ch];
+      } else {
+        hp = h[p];
+      }
       const scalar_t dx = pxs[p] - mx, dy = pys[p] - my;
       const scalar_t raw = o * exp_row(power_at(dx, dy, a, b, c));
       const bool unclamped = raw < amax;
@@ -294,18 +317,26 @@ void backward_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count,
       const bool vis = (k < stop[p]) & (alpha > amin);
       const scalar_t t = trans[p];
       const scalar_t wi = vis ? alpha * t : scalar_t(0);
-      const scalar_t pre = prefix[p] + wi * h[p];
+      const scalar_t pre = prefix[p] + wi * hp;
       prefix[p] = pre;
-      const scalar_t g_alpha = t * h[p] - (total[p] - pre) / (scalar_t(1) - alpha);
+      const scalar_t g_alpha = t * hp - (total[p] - pre) / (scalar_t(1) - alpha);
       const scalar_t g_pow = (vis & unclamped) ? g_alpha * alpha : scalar_t(0);
       trans[p] = vis ? t * (scalar_t(1) - alpha) : t;
-      w[p] = wi;
       s_mx += g_pow * (a * dx + b * dy);
       s_my += g_pow * (b * dx + c * dy);
       s_a += g_pow * dx * dx;
       s_b += g_pow * dx * dy;
       s_c += g_pow * dy * dy;
       s_lo += g_pow;
+      if constexpr (NC > 0) {
+        s_f0 += wi * g[p];
+        if constexpr (NC > 1) s_f1 += wi * g[P + p];
+        if constexpr (NC > 2) s_f2 += wi * g[2 * P + p];
+        if constexpr (NC > 3) s_f3 += wi * g[3 * P + p];
+        if constexpr (NC > 4) s_f4 += wi * g[4 * P + p];
+      } else {
+        w[p] = wi;
+      }
     }
     out[0] = s_mx;
     out[1] = s_my;
@@ -313,19 +344,24 @@ void backward_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count,
     out[3] = -s_b;
     out[4] = scalar_t(-0.5) * s_c;
     out[5] = s_lo;
-    for (int64_t ch = 0; ch <= d; ++ch) {
-      const scalar_t* g_ch = g + ch * P;
-      scalar_t sum = 0;
+    if constexpr (NC > 0) {
+      const scalar_t sums[5] = {s_f0, s_f1, s_f2, s_f3, s_f4};
+      for (int ch = 0; ch < NC; ++ch) out[kHead + ch] = sums[ch];
+    } else {
+      for (int64_t ch = 0; ch < nc; ++ch) {
+        const scalar_t* g_ch = g + ch * P;
+        scalar_t sum = 0;
 #pragma omp simd reduction(+ : sum)
-      for (int p = lo; p < hi; ++p) sum += w[p] * g_ch[p];
-      out[kHead + ch] = sum;
+        for (int p = lo; p < hi; ++p) sum += w[p] * g_ch[p];
+        out[kHead + ch] = sum;
+      }
     }
   }
 }
 
 // Forward of every tile: out [C, H, W, F] (written inside the image), stops [C * T * P]; the tile
 // lists are returned for the backward.
-template <typename scalar_t, int TS>
+template <typename scalar_t, int TS, int NC>
 void forward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, scalar_t* out, int32_t* stops,
                  std::vector<int64_t>& offsets, std::vector<int32_t>& ids) {
   constexpr int P = TS * TS;
@@ -335,14 +371,13 @@ void forward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, sc
   const int width = in.width, height = in.height;
 #pragma omp parallel num_threads(threads)
   {
-    std::vector<scalar_t> acc(n_ch * P), trans(P);
-    std::vector<int32_t> done(P);
+    std::vector<scalar_t> acc(n_ch * P);
 #pragma omp for schedule(dynamic, 1)
     for (int64_t t = 0; t < s.n_cams * n_tiles; ++t) {
       const int64_t c = t / n_tiles, local = t % n_tiles;
       const int tx = static_cast<int>(local % s.tiles_x), ty = static_cast<int>(local / s.tiles_x);
-      composite_tile<scalar_t, TS>(s, ids.data() + offsets[t], static_cast<int32_t>(offsets[t + 1] - offsets[t]), tx,
-                                   ty, rules, acc.data(), trans.data(), stops + t * P, done.data());
+      composite_tile<scalar_t, TS, NC>(s, ids.data() + offsets[t], static_cast<int32_t>(offsets[t + 1] - offsets[t]),
+                                       tx, ty, rules, acc.data(), stops + t * P);
       for (int p = 0; p < P; ++p) {
         const int x = tx * TS + p % TS, y = ty * TS + p / TS;
         if (x >= width || y >= height) continue;
@@ -356,7 +391,7 @@ void forward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, sc
 // Backward of every tile, then the per-intersection gradients summed per Gaussian. Outputs:
 // g_means2d [C, N, 2], g_conics [C, N, 3], g_depths [C, N] (overwritten), g_opacities [N] and
 // g_features (shape of the features; both zero-filled by the caller).
-template <typename scalar_t, int TS>
+template <typename scalar_t, int TS, int NC>
 void backward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, const int64_t* offsets,
                   const int32_t* ids, int64_t n_isect, const int32_t* stops, const scalar_t* out,
                   const scalar_t* grad_out, scalar_t* gm, scalar_t* gc, scalar_t* gd, scalar_t* go, scalar_t* gf) {
@@ -389,7 +424,7 @@ void backward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, c
           total[p] += grad_out[at_px + ch] * out[at_px + ch];
         }
       }
-      backward_tile<scalar_t, TS>(s, ids + offsets[t], static_cast<int32_t>(offsets[t + 1] - offsets[t]), tx, ty,
+      backward_tile<scalar_t, TS, NC>(s, ids + offsets[t], static_cast<int32_t>(offsets[t + 1] - offsets[t]), tx, ty,
                                   rules, g.data(), total.data(), stop.data(), grads.data() + offsets[t] * n_k);
     }
   }
@@ -426,8 +461,8 @@ void backward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, c
 // Standalone build of the kernels (vectorisation reports, no torch headers).
 __attribute__((used)) void kernels_float8(const Inputs<float>& in, const Rules& rules, float* out, int32_t* stops,
                     std::vector<int64_t>& offsets, std::vector<int32_t>& ids, float* g) {
-  forward_all<float, 8>(in, rules, 1, out, stops, offsets, ids);
-  backward_all<float, 8>(in, rules, 1, offsets.data(), ids.data(), static_cast<int64_t>(ids.size()), stops, out, out,
+  forward_all<float, 8, 5>(in, rules, 1, out, stops, offsets, ids);
+  backward_all<float, 8, 5>(in, rules, 1, offsets.data(), ids.data(), static_cast<int64_t>(ids.size()), stops, out, out,
                          g, g, g, g, g);
 }
 #else
@@ -454,14 +489,20 @@ Inputs<scalar_t> inputs_of(const at::Tensor& means2d, const at::Tensor& conics, 
                           static_cast<int>(width), static_cast<int>(height)};
 }
 
+// Calls fn(scalar, tile, channels) with compile-time values: float32 / float64, 8x8 tiles, and the
+// composited feature channels (D + 1) fused for D = 3 (RGB) and D = 4 (RGB + mask), else generic.
 template <typename Fn>
-auto dispatch(const at::Tensor& like, int64_t tile, Fn&& fn) {
-  TORCH_CHECK(tile == 8 || tile == 16, "raster_cpu: tile size must be 8 or 16, got ", tile);
-  if (like.scalar_type() == at::kFloat) {
-    return tile == 8 ? fn(float(), std::integral_constant<int, 8>()) : fn(float(), std::integral_constant<int, 16>());
-  }
+auto dispatch(const at::Tensor& like, int64_t tile, int64_t n_feat, Fn&& fn) {
+  TORCH_CHECK(tile == 8, "raster_cpu: the tile size must be 8, got ", tile);
+  using T8 = std::integral_constant<int, 8>;
+  auto by_channels = [&](auto scalar) {
+    if (n_feat == 3) return fn(scalar, T8(), std::integral_constant<int, 4>());
+    if (n_feat == 4) return fn(scalar, T8(), std::integral_constant<int, 5>());
+    return fn(scalar, T8(), std::integral_constant<int, 0>());
+  };
+  if (like.scalar_type() == at::kFloat) return by_channels(float());
   TORCH_CHECK(like.scalar_type() == at::kDouble, "raster_cpu: float32 or float64 only, got ", like.scalar_type());
-  return tile == 8 ? fn(double(), std::integral_constant<int, 8>()) : fn(double(), std::integral_constant<int, 16>());
+  return by_channels(double());
 }
 
 }  // namespace
@@ -471,16 +512,16 @@ std::vector<at::Tensor> rasterize_forward(const at::Tensor& means2d, const at::T
                                           const at::Tensor& depths, const at::Tensor& radii, int64_t width,
                                           int64_t height, int64_t tile, const std::vector<double>& rules) {
   const Rules r = rules_from(rules);
-  return dispatch(means2d, tile, [&](auto scalar, auto ts) {
+  return dispatch(means2d, tile, features.size(-1), [&](auto scalar, auto ts, auto nc) {
     using scalar_t = decltype(scalar);
-    constexpr int TS = decltype(ts)::value;
+    constexpr int TS = decltype(ts)::value, NC = decltype(nc)::value;
     const Inputs<scalar_t> in = inputs_of<scalar_t>(means2d, conics, opacities, features, depths, radii, width, height);
     const int64_t n_tiles = ((width + TS - 1) / TS) * ((height + TS - 1) / TS);
     at::Tensor out = at::zeros({in.n_cams, height, width, in.n_feat + 2}, means2d.options());
     at::Tensor stops = at::empty({in.n_cams * n_tiles * TS * TS}, radii.options());
     std::vector<int64_t> offsets;
     std::vector<int32_t> ids;
-    forward_all<scalar_t, TS>(in, r, at::get_num_threads(), out.data_ptr<scalar_t>(), stops.data_ptr<int32_t>(),
+    forward_all<scalar_t, TS, NC>(in, r, at::get_num_threads(), out.data_ptr<scalar_t>(), stops.data_ptr<int32_t>(),
                               offsets, ids);
     at::Tensor offsets_t = at::empty({static_cast<int64_t>(offsets.size())}, at::kLong);
     std::memcpy(offsets_t.data_ptr<int64_t>(), offsets.data(), offsets.size() * sizeof(int64_t));
@@ -498,14 +539,14 @@ std::vector<at::Tensor> rasterize_backward(const at::Tensor& means2d, const at::
                                            const at::Tensor& out, const at::Tensor& grad_out) {
   TORCH_CHECK(grad_out.is_contiguous() && grad_out.sizes() == out.sizes(), "raster_cpu: grad_out must match out");
   const Rules r = rules_from(rules);
-  return dispatch(means2d, tile, [&](auto scalar, auto ts) {
+  return dispatch(means2d, tile, features.size(-1), [&](auto scalar, auto ts, auto nc) {
     using scalar_t = decltype(scalar);
-    constexpr int TS = decltype(ts)::value;
+    constexpr int TS = decltype(ts)::value, NC = decltype(nc)::value;
     const Inputs<scalar_t> in = inputs_of<scalar_t>(means2d, conics, opacities, features, depths, radii, width, height);
     at::Tensor g_means2d = at::empty_like(means2d), g_conics = at::empty_like(conics);
     at::Tensor g_depths = at::empty_like(depths), g_opacities = at::zeros_like(opacities);
     at::Tensor g_features = at::zeros_like(features);
-    backward_all<scalar_t, TS>(in, r, at::get_num_threads(), offsets.data_ptr<int64_t>(), ids.data_ptr<int32_t>(),
+    backward_all<scalar_t, TS, NC>(in, r, at::get_num_threads(), offsets.data_ptr<int64_t>(), ids.data_ptr<int32_t>(),
                                ids.numel(), stops.data_ptr<int32_t>(), out.data_ptr<scalar_t>(),
                                grad_out.data_ptr<scalar_t>(), g_means2d.data_ptr<scalar_t>(),
                                g_conics.data_ptr<scalar_t>(), g_depths.data_ptr<scalar_t>(),
