@@ -156,7 +156,8 @@ def test_e2nerf_real_writer_keeps_poses_events_and_ground_truth(synth: SynthConf
         inside = (events.t >= exposures[b].start_us) & (events.t < exposures[b].end_us)
         assert np.asarray(record.event_maps[b]).sum() == pytest.approx(float(events.p[inside].sum()), abs=2.0)
     moved = json.loads((e2nerf_real / "gt" / "transforms.json").read_text())["frames"]
-    assert {(f["blurry_index"], f["latent_index"]): f["time_us"] for f in moved}[(1, 1)] == 200_000 + 50_002
+    # raw latent (1, 1) is the layout's latent 2 of frame 1, at 2 x 25.001 ms into its nominal exposure
+    assert {(f["blurry_index"], f["latent_index"]): f["time_us"] for f in moved}[(1, 2)] == 200_000 + 50_002
 
 
 def test_layout_read_directly_starts_from_points_triangulated_at_its_poses(
@@ -199,3 +200,18 @@ def test_layout_without_features_falls_back_to_random_points_with_one_warning(
     assert len(lines) == 1 and "no triangulated initial points (no pair of latents matched" in lines[0]
     assert f"starting from {RANDOM_POINTS} random points" in lines[0]
     assert len(out.metadata["points3D_xyz"]) == RANDOM_POINTS and parser.scene().points_xyz is None
+
+
+def test_process_e2nerf_layout_copies_its_ground_truth(tmp_path: Path) -> None:
+    raw = SynthConfig(output_dir=tmp_path / "raw", **dict(TINY, k=5, n_frames=4))
+    write_synthetic_scene(raw)
+    layout = write_e2nerf_real(raw.output_dir, tmp_path / "real")
+    config = ProcessConfig(output=tmp_path / "scene", inputs=InputConfig(e2nerf=layout), poses="given",
+                           given_points="random", num_random_points=RANDOM_POINTS)
+    process(config)
+    record = read_scene(tmp_path / "scene")
+    assert record.gt_image_paths is not None and record.novel is not None
+    assert record.gt_image_paths[5 * 1 + 3].name == "0001_3.png"
+    np.testing.assert_allclose(record.gt_c2w, record.latent_c2w, atol=1e-9)
+    # novel views keep their place between the latents on E2NeRF's nominal clock
+    assert np.all((record.novel.times > 0.0) & (record.novel.times < 1.0))

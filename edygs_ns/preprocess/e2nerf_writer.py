@@ -12,7 +12,9 @@ events pre-binned into 4 bins per frame, but no timestamps. Written here from a 
 - ``gt/``: the raw capture's ground truth with every ``time_us`` moved onto the nominal clock that
   ``edygs-process --e2nerf`` gives the frames (exposure i starts at i x 200 ms and lasts 4 x
   25.001 ms; linear inside an exposure and between exposures), so that ``edygs-process --e2nerf``
-  can copy it into the processed scene for ``edygs-eval``. E2NeRF's own scenes have no gt/.
+  can copy it into the processed scene for ``edygs-eval``. Its latent frames keep the instants that
+  are layout latents, renumbered (a capture with k = 3 gives latents 0, 2, 4 only, so no per-latent
+  ground truth: write the capture with k = 5). E2NeRF's own scenes have no gt/.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
-from typing import List, Sequence
+from typing import Any, Dict, List, Sequence
 
 import numpy as np
 
@@ -37,6 +39,8 @@ from edygs_ns.preprocess.inputs import (
 
 #: Latents per frame of the layout (E2NeRF's 4 bins).
 K = e2nerf.BINS + 1
+#: A ground-truth latent whose instant lies within this fraction of a bin of a layout latent is that latent.
+SLOT_TOLERANCE = 1e-6
 #: Near plane written when the room is known (world units).
 NEAR = 0.1
 
@@ -60,6 +64,18 @@ def _depth_bounds(raw: Path, centres: np.ndarray) -> List[float]:
             return [NEAR, float(np.max(np.linalg.norm(corners[None] - centres[:, None], axis=-1)))]
     diameter = float(np.max(np.linalg.norm(centres[None] - centres[:, None], axis=-1))) or 1.0
     return [0.1 * diameter, 10.0 * diameter]
+
+
+def _layout_latents(frames: List[Dict[str, Any]], exposures: Sequence[Exposure]) -> List[Dict[str, Any]]:
+    """The raw capture's ground-truth latent frames that fall on one of the layout's 5 latent instants,
+    with ``latent_index`` renumbered among those 5 (all of them when the capture's k is 5)."""
+    kept = []
+    for frame in frames:
+        exposure = exposures[int(frame["blurry_index"])]
+        slot = (int(frame["time_us"]) - exposure.start_us) * (K - 1) / float(exposure.end_us - exposure.start_us)
+        if abs(slot - round(slot)) < SLOT_TOLERANCE:
+            kept.append(dict(frame, latent_index=int(round(slot))))
+    return kept
 
 
 def write_e2nerf_real(raw: Path, output: Path) -> Path:
@@ -97,6 +113,7 @@ def write_e2nerf_real(raw: Path, output: Path) -> Path:
     np.save(output / e2nerf.POSES_BOUNDS_FILE, rows)
     shutil.copytree(gt, output / GT_DIR_NAME)
     meta = json.loads((output / GT_DIR_NAME / GT_TRANSFORMS_NAME).read_text())
+    meta["frames"] = _layout_latents(meta.get("frames", []), exposures)
     span = float((len(exposures) - 1) * E2NERF_FRAME_PERIOD_US + E2NERF_REAL_EXPOSURE_US)
     for key in ("frames", "novel_frames"):
         entries = [f for f in meta.get(key, []) if "time_us" in f]
