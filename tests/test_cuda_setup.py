@@ -219,7 +219,7 @@ def test_rasterizer_torch_on_cuda_skips_gsplat(monkeypatch, tmp_path):
 
     _no_kernels(monkeypatch, tmp_path)
     assert select_backend(torch.device("cuda"), "torch") is rasterize_torch
-    assert select_backend(torch.device("cpu")) is rasterize_torch  # CPU never asks for gsplat
+    assert select_backend(torch.device("cpu")).__name__ in ("rasterize_cpu", "rasterize_torch")  # never gsplat
 
 
 def test_a_failed_build_or_an_empty_backend_is_one_clear_line(monkeypatch, tmp_path):

@@ -324,8 +324,11 @@ def test_projection_matches_gsplat_torch_reference() -> None:
     torch.testing.assert_close(proj.depths[vis], depths[vis])
 
 
-def test_select_backend_picks_torch_on_cpu() -> None:
-    assert select_backend(torch.device("cpu")) is rasterize_torch
+def test_select_backend_on_cpu() -> None:
+    from edygs_ns.render.cpu_backend import compiled_available, rasterize_cpu
+
+    expected = rasterize_cpu if compiled_available() else rasterize_torch  # the compiled one when it builds
+    assert select_backend(torch.device("cpu")) is expected
     assert select_backend(torch.device("cpu"), "torch") is rasterize_torch
     with pytest.raises(ValueError, match="unknown rasterizer"):
         select_backend(torch.device("cpu"), "opengl")

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import logging
 import os
 import platform
 import time
@@ -53,10 +54,17 @@ def module_name() -> str:
 def load_extension() -> Optional[ModuleType]:
     """The compiled module, built on first use; None (with one logged line) when it cannot be built."""
     if os.environ.get(DISABLE_ENV, "") not in ("", "0"):
+        CONSOLE.log(f"compiled CPU rasteriser off ({DISABLE_ENV} is set); using the torch rasteriser")
         return None
     start = time.perf_counter()
     try:
-        from torch.utils import cpp_extension
+        quiet = logging.getLogger("torch.utils.cpp_extension")  # "No CUDA runtime" on CPU machines
+        level = quiet.level
+        quiet.setLevel(logging.ERROR)
+        try:
+            from torch.utils import cpp_extension
+        finally:
+            quiet.setLevel(level)
 
         module = cpp_extension.load(
             name=module_name(), sources=[str(SOURCE)], extra_cflags=list(CFLAGS),

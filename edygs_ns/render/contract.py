@@ -89,28 +89,44 @@ def check_inputs(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor
 
 
 def select_backend(device: torch.device, force: Optional[str] = None) -> RasterBackend:
-    """The backend for tensors on `device`: gsplat on CUDA, the torch reference elsewhere.
+    """The backend for tensors on `device`: gsplat on CUDA, the compiled CPU rasteriser on the CPU
+    (the torch reference when it cannot be built, after a one-line notice), torch elsewhere.
 
     Args:
-        force: "torch" or "gsplat" to override the choice (config field `rasterizer`); "torch"
-            runs the torch rasteriser on any device, CUDA tensors included.
+        force: "torch", "cpu" or "gsplat" to override the choice (config field `rasterizer`);
+            "torch" runs the torch reference rasteriser on any device, CUDA tensors included;
+            "cpu" the compiled one (CPU tensors only).
 
     Raises:
         GsplatUnavailableError: gsplat on CUDA, and its kernels are neither built nor buildable
             (one line naming the fix: ``edygs-doctor --build-gsplat`` or ``rasterizer torch``);
             checked once per process, before the first gsplat call.
+        RuntimeError: "cpu" forced and the compiled rasteriser cannot be built (one line).
+        ValueError: an unknown name, or "cpu" for tensors that are not on the CPU.
     """
-    name = force if force not in (None, "auto") else ("gsplat" if torch.device(device).type == "cuda" else "torch")
+    kind = torch.device(device).type
+    name = force if force not in (None, "auto") else ("gsplat" if kind == "cuda" else "cpu" if kind == "cpu" else "torch")
     if name == "gsplat":
-        if torch.device(device).type == "cuda":
+        if kind == "cuda":
             from edygs_ns.cuda_setup import require_gsplat_kernels
 
             require_gsplat_kernels()
         from edygs_ns.render.gsplat_backend import rasterize_gsplat
 
         return rasterize_gsplat
+    if name == "cpu":
+        if kind != "cpu":
+            raise ValueError(f"rasterizer 'cpu' runs on CPU tensors, these are on {device}; choose 'auto' or 'torch'")
+        from edygs_ns.render.cpu_backend import compiled_available, rasterize_cpu
+
+        if compiled_available():
+            return rasterize_cpu
+        if force == "cpu":
+            raise RuntimeError("the compiled CPU rasteriser cannot be built here (see the notice above); "
+                               "train with --pipeline.model.rasterizer torch")
+        name = "torch"  # "auto": the notice was logged once by load_extension
     if name == "torch":
         from edygs_ns.render.torch_backend import rasterize_torch
 
         return rasterize_torch
-    raise ValueError(f"unknown rasterizer backend {name!r}; choose 'auto', 'torch' or 'gsplat'")
+    raise ValueError(f"unknown rasterizer backend {name!r}; choose 'auto', 'torch', 'cpu' or 'gsplat'")
