@@ -1,6 +1,11 @@
-"""Rasteriser timings: forward and forward+backward for both backends.
+"""Rasteriser timings: forward and forward+backward of every backend, side by side.
 
-Usage: ``python benchmarks/rasterizer.py --out FILE.json [--repeats 5] [--cases 20000x128 ...]``
+Usage: ``python benchmarks/rasterizer.py --out FILE.json [--repeats 5] [--cases 20000x128 ...]
+[--threads 1 2] [--backends torch cpu]``
+
+Backends: ``torch`` (the reference), ``cpu`` (the compiled one, when it builds) and ``gsplat``
+(with CUDA). Every case runs each backend at each thread count in turn, so the ratios
+(torch time / backend time, same case and threads) compare runs made minutes apart at most.
 
 Scenes: one pinhole camera (53 degree field of view) looking at Gaussians spread uniformly over
 its frustum between depths 2 and 6, random orientations, anisotropic log-normal scales, opacities
@@ -30,6 +35,7 @@ from rich.table import Table  # noqa: E402
 
 from nerfstudio.utils.rich_utils import CONSOLE  # noqa: E402
 
+from edygs_ns.render.cpu_backend import compiled_available, rasterize_cpu  # noqa: E402
 from edygs_ns.render.torch_backend import rasterize_torch  # noqa: E402
 
 #: Gaussian counts and square image sizes of the default grid.
@@ -110,7 +116,7 @@ def measure(backend: str, n: int, size: int, complexity: float, repeats: int) ->
     if backend == "gsplat":
         from edygs_ns.render.gsplat_backend import rasterize_gsplat as raster
     else:
-        raster = rasterize_torch
+        raster = {"torch": rasterize_torch, "cpu": rasterize_cpu}[backend]
     scene = make_scene(n, size, complexity, device)
     leaves = {k: v.clone().requires_grad_(k not in ("Ks",)) for k, v in scene.items()}
     weights = torch.rand(1, size, size, CHANNELS, device=device)
@@ -152,37 +158,52 @@ def main() -> None:
     parser.add_argument("--out", required=True, help="JSON file for the records")
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per case (median reported)")
     parser.add_argument("--complexity", type=float, default=DEFAULT_COMPLEXITY, help="Gaussians per pixel")
-    parser.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="torch CPU threads")
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="torch CPU thread counts")
+    parser.add_argument("--backends", nargs="+", default=None, help="torch, cpu, gsplat (default: all available)")
     parser.add_argument("--cases", nargs="*", default=None, help="NxSIZE cases (default: full grid)")
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
     cases = parse_cases(args.cases) if args.cases else [(n, s) for n in DEFAULT_COUNTS for s in DEFAULT_SIZES]
-    backends = ["torch"] + (["gsplat"] if torch.cuda.is_available() else [])
+    backends = args.backends or (
+        ["torch"] + (["cpu"] if compiled_available() else []) + (["gsplat"] if torch.cuda.is_available() else [])
+    )
     load = os.getloadavg()
     CONSOLE.log(
-        f"threads={torch.get_num_threads()} OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')} "
+        f"backends={backends} threads={args.threads} OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')} "
         f"load average (1, 5, 15 min)={load[0]:.2f} {load[1]:.2f} {load[2]:.2f}"
     )
     records: List[Record] = []
-    for backend in backends:
+    for threads in args.threads:
+        torch.set_num_threads(threads)
         for n, size in cases:
-            rec = measure(backend, n, size, args.complexity, args.repeats)
-            CONSOLE.log(
-                f"{backend} N={n} {size}x{size}: forward {rec.forward_ms} ms (cpu {rec.forward_cpu_ms}), "
-                f"forward+backward {rec.forward_backward_ms} ms (cpu {rec.forward_backward_cpu_ms}), load {rec.load_average}"
-            )
-            records.append(rec)
-    table = Table(title=f"rasteriser timings, median of {args.repeats} (ms)")
-    for col in ("backend", "N", "image", "forward", "forward+backward", "fwd cpu", "fwd+bwd cpu", "load"):
-        table.add_column(col, justify="right")
-    for r in records:
-        table.add_row(
-            r.backend, str(r.n_gaussians), f"{r.width}x{r.height}", f"{r.forward_ms:.1f}", f"{r.forward_backward_ms:.1f}",
-            f"{r.forward_cpu_ms:.1f}", f"{r.forward_backward_cpu_ms:.1f}", f"{r.load_average:.2f}",
-        )
-    CONSOLE.print(table)
+            for backend in backends:
+                rec = measure(backend, n, size, args.complexity, args.repeats)
+                CONSOLE.log(
+                    f"{backend} threads={threads} N={n} {size}x{size}: forward {rec.forward_ms} ms (cpu "
+                    f"{rec.forward_cpu_ms}), forward+backward {rec.forward_backward_ms} ms (cpu "
+                    f"{rec.forward_backward_cpu_ms}), load {rec.load_average}"
+                )
+                records.append(rec)
+    CONSOLE.print(ratio_table(records, args.repeats))
     with open(args.out, "w", encoding="utf-8") as f:
         json.dump([asdict(r) for r in records], f, indent=1)
+
+
+def ratio_table(records: List[Record], repeats: int) -> Table:
+    """One row per record, with the torch backend's time over this one's (same case and threads)."""
+    reference = {(r.n_gaussians, r.width, r.threads): r for r in records if r.backend == "torch"}
+    table = Table(title=f"rasteriser timings, median of {repeats} (ms); x torch = torch time / this time")
+    for col in ("backend", "threads", "N", "image", "forward", "fwd+bwd", "fwd cpu", "fwd+bwd cpu", "x torch fwd",
+                "x torch fwd+bwd", "load"):
+        table.add_column(col, justify="right")
+    for r in records:
+        ref = reference.get((r.n_gaussians, r.width, r.threads))
+        ratios = (f"{ref.forward_ms / r.forward_ms:.1f}", f"{ref.forward_backward_ms / r.forward_backward_ms:.1f}") if ref else ("-", "-")
+        table.add_row(
+            r.backend, str(r.threads), str(r.n_gaussians), f"{r.width}x{r.height}", f"{r.forward_ms:.1f}",
+            f"{r.forward_backward_ms:.1f}", f"{r.forward_cpu_ms:.1f}", f"{r.forward_backward_cpu_ms:.1f}", *ratios,
+            f"{r.load_average:.2f}",
+        )
+    return table
 
 
 if __name__ == "__main__":

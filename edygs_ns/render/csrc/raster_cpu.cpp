@@ -190,6 +190,19 @@ void bin(const Scene<scalar_t>& s, std::vector<int64_t>& offsets, std::vector<in
   }
 }
 
+// Pixels per block of the inner loops: a fixed trip count the compiler turns into whole vectors
+// (one AVX-512 or two AVX2 instructions per operation), with no scalar remainder loop.
+constexpr int kBlock = 16;
+
+// Pixels [lo, hi) of a row-major tile from the rows [first, last] a Gaussian's box reaches there,
+// widened to whole blocks (the extra pixels lie outside the box: their alpha is below ALPHA_MIN).
+template <int TS>
+inline void block_range(int first, int last, int& lo, int& hi) {
+  static_assert((TS * TS) % kBlock == 0, "tile pixels must be whole blocks");
+  lo = (std::max(first, 0) * TS / kBlock) * kBlock;
+  hi = (((std::min(last, TS - 1) + 1) * TS + kBlock - 1) / kBlock) * kBlock;
+}
+
 // Number of composited feature channels (D features + depth) known at compile time: NC > 0 fuses
 // the channel loops into the pixel loop (the common D = 3, 4); NC = 0 reads it at run time.
 template <int NC>
@@ -226,11 +239,13 @@ void composite_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count
     }
     const int32_t id = list[k];
     const scalar_t* rec = &s.records[id * stride];
-    const int lo = std::max(s.rows[2 * id] - yb, 0) * TS, hi = (std::min(s.rows[2 * id + 1] - yb, TS - 1) + 1) * TS;
+    int lo, hi;
+    block_range<TS>(s.rows[2 * id] - yb, s.rows[2 * id + 1] - yb, lo, hi);
     const scalar_t mx = rec[0], my = rec[1], a = rec[2], b = rec[3], c = rec[4], o = rec[5];
     const scalar_t* f = rec + kHead;
+    for (int p0 = lo; p0 < hi; p0 += kBlock) {
 #pragma omp simd
-    for (int p = lo; p < hi; ++p) {
+    for (int p = p0; p < p0 + kBlock; ++p) {
       scalar_t alpha = o * exp_row(power_at(pxs[p] - mx, pys[p] - my, a, b, c));
       alpha = alpha < amax ? alpha : amax;
       const scalar_t t = trans[p];
@@ -247,6 +262,7 @@ void composite_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count
       } else {
         w[p] = wi;
       }
+    }
     }
     if constexpr (NC == 0) {
       for (int64_t ch = 0; ch < nc; ++ch) {
@@ -283,7 +299,8 @@ void backward_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count,
   for (int32_t k = 0; k < std::min(last, count); ++k) {
     const int32_t id = list[k];
     const scalar_t* rec = &s.records[id * stride];
-    const int lo = std::max(s.rows[2 * id] - yb, 0) * TS, hi = (std::min(s.rows[2 * id + 1] - yb, TS - 1) + 1) * TS;
+    int lo, hi;
+    block_range<TS>(s.rows[2 * id] - yb, s.rows[2 * id + 1] - yb, lo, hi);
     const scalar_t mx = rec[0], my = rec[1], a = rec[2], b = rec[3], c = rec[4], o = rec[5];
     const scalar_t* f = rec + kHead;
     scalar_t* out = grads + static_cast<int64_t>(k) * n_k;
@@ -297,47 +314,53 @@ void backward_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count,
         for (int p = lo; p < hi; ++p) h[p] += g_ch[p] * fc;
       }
     }
-    scalar_t s_mx = 0, s_my = 0, s_a = 0, s_b = 0, s_c = 0, s_lo = 0;
-    // feature sums as scalars (an array reduction is combined lane by lane, ~3x slower here)
-    static_assert(NC <= 5, "fused channel count above 5");
-    scalar_t s_f0 = 0, s_f1 = 0, s_f2 = 0, s_f3 = 0, s_f4 = 0;
-#pragma omp simd reduction(+ : s_mx, s_my, s_a, s_b, s_c, s_lo, s_f0, s_f1, s_f2, s_f3, s_f4)
-    for (int p = lo; p < hi; ++p) {
-      scalar_t hp;
-      if constexpr (NC > 0) {
-        hp = g_alpha_ch[p];
-        for (int ch = 0; ch < NC; ++ch) hp += g[ch * P + p] * f[ch];
-      } else {
-        hp = h[p];
-      }
-      const scalar_t dx = pxs[p] - mx, dy = pys[p] - my;
-      const scalar_t raw = o * exp_row(power_at(dx, dy, a, b, c));
-      const bool unclamped = raw < amax;
-      const scalar_t alpha = unclamped ? raw : amax;
-      const bool vis = (k < stop[p]) & (alpha > amin);
-      const scalar_t t = trans[p];
-      const scalar_t wi = vis ? alpha * t : scalar_t(0);
-      const scalar_t pre = prefix[p] + wi * hp;
-      prefix[p] = pre;
-      const scalar_t g_alpha = t * hp - (total[p] - pre) / (scalar_t(1) - alpha);
-      const scalar_t g_pow = (vis & unclamped) ? g_alpha * alpha : scalar_t(0);
-      trans[p] = vis ? t * (scalar_t(1) - alpha) : t;
-      s_mx += g_pow * (a * dx + b * dy);
-      s_my += g_pow * (b * dx + c * dy);
-      s_a += g_pow * dx * dx;
-      s_b += g_pow * dx * dy;
-      s_c += g_pow * dy * dy;
-      s_lo += g_pow;
-      if constexpr (NC > 0) {
-        s_f0 += wi * g[p];
-        if constexpr (NC > 1) s_f1 += wi * g[P + p];
-        if constexpr (NC > 2) s_f2 += wi * g[2 * P + p];
-        if constexpr (NC > 3) s_f3 += wi * g[3 * P + p];
-        if constexpr (NC > 4) s_f4 += wi * g[4 * P + p];
-      } else {
-        w[p] = wi;
+    // per-lane sums over the blocks, added across lanes once per Gaussian (a tree: few adds)
+    constexpr int kSums = 6 + (NC > 0 ? NC : 0);
+    alignas(64) scalar_t lane[kSums][kBlock] = {};
+    for (int p0 = lo; p0 < hi; p0 += kBlock) {
+#pragma omp simd
+      for (int i = 0; i < kBlock; ++i) {
+        const int p = p0 + i;
+        scalar_t hp;
+        if constexpr (NC > 0) {
+          hp = g_alpha_ch[p];
+          for (int ch = 0; ch < NC; ++ch) hp += g[ch * P + p] * f[ch];
+        } else {
+          hp = h[p];
+        }
+        const scalar_t dx = pxs[p] - mx, dy = pys[p] - my;
+        const scalar_t raw = o * exp_row(power_at(dx, dy, a, b, c));
+        const bool unclamped = raw < amax;
+        const scalar_t alpha = unclamped ? raw : amax;
+        const bool vis = (k < stop[p]) & (alpha > amin);
+        const scalar_t t = trans[p];
+        const scalar_t wi = vis ? alpha * t : scalar_t(0);
+        const scalar_t pre = prefix[p] + wi * hp;
+        prefix[p] = pre;
+        const scalar_t g_alpha = t * hp - (total[p] - pre) / (scalar_t(1) - alpha);
+        const scalar_t g_pow = (vis & unclamped) ? g_alpha * alpha : scalar_t(0);
+        trans[p] = vis ? t * (scalar_t(1) - alpha) : t;
+        lane[0][i] += g_pow * (a * dx + b * dy);
+        lane[1][i] += g_pow * (b * dx + c * dy);
+        lane[2][i] += g_pow * dx * dx;
+        lane[3][i] += g_pow * dx * dy;
+        lane[4][i] += g_pow * dy * dy;
+        lane[5][i] += g_pow;
+        if constexpr (NC > 0) {
+          for (int ch = 0; ch < NC; ++ch) lane[6 + ch][i] += wi * g[ch * P + p];
+        } else {
+          w[p] = wi;
+        }
       }
     }
+    for (int width = kBlock / 2; width >= 1; width /= 2) {
+      for (int j = 0; j < kSums; ++j) {
+#pragma omp simd
+        for (int i = 0; i < width; ++i) lane[j][i] += lane[j][i + width];
+      }
+    }
+    const scalar_t s_mx = lane[0][0], s_my = lane[1][0], s_a = lane[2][0], s_b = lane[3][0], s_c = lane[4][0];
+    const scalar_t s_lo = lane[5][0];
     out[0] = s_mx;
     out[1] = s_my;
     out[2] = scalar_t(-0.5) * s_a;
@@ -345,8 +368,7 @@ void backward_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count,
     out[4] = scalar_t(-0.5) * s_c;
     out[5] = s_lo;
     if constexpr (NC > 0) {
-      const scalar_t sums[5] = {s_f0, s_f1, s_f2, s_f3, s_f4};
-      for (int ch = 0; ch < NC; ++ch) out[kHead + ch] = sums[ch];
+      for (int ch = 0; ch < NC; ++ch) out[kHead + ch] = lane[6 + ch][0];
     } else {
       for (int64_t ch = 0; ch < nc; ++ch) {
         const scalar_t* g_ch = g + ch * P;
