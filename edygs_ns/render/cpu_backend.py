@@ -50,19 +50,19 @@ class _CompiledRaster(torch.autograd.Function):
         ext = load_extension()
         width, height, tile = size
         inputs = [t.detach().contiguous() for t in (means2d, conics, opacities, features, depths)]
-        out, offsets, ids, stops = ext.forward(*inputs, radii.contiguous(), width, height, tile, RULES)
+        out, offsets, ids, used, stops = ext.forward(*inputs, radii.contiguous(), width, height, tile, RULES)
         ctx.size = size
-        ctx.save_for_backward(*inputs, radii, offsets, ids, stops, out)
+        ctx.save_for_backward(*inputs, radii, offsets, ids, used, stops, out)
         return out
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out: Tensor):  # type: ignore[override]
-        means2d, conics, opacities, features, depths, radii, offsets, ids, stops, out = ctx.saved_tensors
+        means2d, conics, opacities, features, depths, radii, offsets, ids, used, stops, out = ctx.saved_tensors
         width, height, tile = ctx.size
         grads = load_extension().backward(
             means2d, conics, opacities, features, depths, radii.contiguous(), width, height, tile, RULES,
-            offsets, ids, stops, out, grad_out.contiguous(),
+            offsets, ids, used, stops, out, grad_out.contiguous(),
         )
         return (*grads, None, None)
 

@@ -190,32 +190,20 @@ void bin(const Scene<scalar_t>& s, std::vector<int64_t>& offsets, std::vector<in
   }
 }
 
-// Pixels per block of the inner loops: a fixed trip count the compiler turns into whole vectors
-// (one AVX-512 or two AVX2 instructions per operation), with no scalar remainder loop.
-constexpr int kBlock = 16;
-
-// Pixels [lo, hi) of a row-major tile from the rows [first, last] a Gaussian's box reaches there,
-// widened to whole blocks (the extra pixels lie outside the box: their alpha is below ALPHA_MIN).
-template <int TS>
-inline void block_range(int first, int last, int& lo, int& hi) {
-  static_assert((TS * TS) % kBlock == 0, "tile pixels must be whole blocks");
-  lo = (std::max(first, 0) * TS / kBlock) * kBlock;
-  hi = (((std::min(last, TS - 1) + 1) * TS + kBlock - 1) / kBlock) * kBlock;
-}
-
 // Number of composited feature channels (D features + depth) known at compile time: NC > 0 fuses
 // the channel loops into the pixel loop (the common D = 3, 4); NC = 0 reads it at run time.
 template <int NC>
 inline int64_t channels(int64_t runtime) { return NC > 0 ? NC : runtime; }
 
 // Forward of one tile. acc: [F, P] (features, depth, alpha); stop: [P] list index of the Gaussian
-// that ended the pixel (excluded), else the list length. A finished pixel (or one outside the
+// that ended the pixel (excluded), else the list length; used: [count] 1 where the Gaussian was
+// composited into some pixel of the tile (the backward skips the others). A finished pixel (or one outside the
 // image) has transmittance 0, which no later Gaussian passes. A Gaussian is evaluated on the rows
 // of the tile its ellipse box reaches: pixels [lo, hi) of the row-major tile, one flat loop the
 // compiler vectorises.
 template <typename scalar_t, int TS, int NC>
 void composite_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count, int tx, int ty,
-                    const Rules& rules, scalar_t* acc, int32_t* stop) {
+                    const Rules& rules, scalar_t* acc, int32_t* stop, uint8_t* used) {
   constexpr int P = TS * TS;
   constexpr int kCheckEvery = 8;  // Gaussians between tests for a finished tile
   const int64_t stride = s.stride(), nc = channels<NC>(s.n_feat + 1);
@@ -239,13 +227,12 @@ void composite_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count
     }
     const int32_t id = list[k];
     const scalar_t* rec = &s.records[id * stride];
-    int lo, hi;
-    block_range<TS>(s.rows[2 * id] - yb, s.rows[2 * id + 1] - yb, lo, hi);
+    const int lo = std::max(s.rows[2 * id] - yb, 0) * TS, hi = (std::min(s.rows[2 * id + 1] - yb, TS - 1) + 1) * TS;
     const scalar_t mx = rec[0], my = rec[1], a = rec[2], b = rec[3], c = rec[4], o = rec[5];
     const scalar_t* f = rec + kHead;
-    for (int p0 = lo; p0 < hi; p0 += kBlock) {
-#pragma omp simd
-    for (int p = p0; p < p0 + kBlock; ++p) {
+    int any = 0;
+#pragma omp simd reduction(| : any)
+    for (int p = lo; p < hi; ++p) {
       scalar_t alpha = o * exp_row(power_at(pxs[p] - mx, pys[p] - my, a, b, c));
       alpha = alpha < amax ? alpha : amax;
       const scalar_t t = trans[p];
@@ -256,6 +243,7 @@ void composite_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count
       const scalar_t wi = inc ? alpha * t : scalar_t(0);
       trans[p] = fin ? scalar_t(0) : (inc ? next : t);
       stop[p] = fin ? k : stop[p];
+      any |= inc ? 1 : 0;
       acc_alpha[p] += wi;
       if constexpr (NC > 0) {
         for (int ch = 0; ch < NC; ++ch) acc[ch * P + p] += wi * f[ch];
@@ -263,7 +251,7 @@ void composite_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count
         w[p] = wi;
       }
     }
-    }
+    used[k] = any ? 1 : 0;
     if constexpr (NC == 0) {
       for (int64_t ch = 0; ch < nc; ++ch) {
         const scalar_t fc = f[ch];
@@ -281,7 +269,7 @@ void composite_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count
 template <typename scalar_t, int TS, int NC>
 void backward_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count, int tx, int ty,
                    const Rules& rules, const scalar_t* g, const scalar_t* total, const int32_t* stop,
-                   scalar_t* grads) {
+                   const uint8_t* used, scalar_t* grads) {
   constexpr int P = TS * TS;
   const int64_t stride = s.stride(), nc = channels<NC>(s.n_feat + 1), n_k = kHead + nc;
   const int xb = tx * TS, yb = ty * TS;
@@ -297,10 +285,10 @@ void backward_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count,
   const scalar_t amax = rules.alpha_max, amin = rules.alpha_min;
   const scalar_t* g_alpha_ch = g + nc * P;  // the alpha channel's feature is 1
   for (int32_t k = 0; k < std::min(last, count); ++k) {
+    if (!used[k]) continue;  // composited nowhere in this tile: its gradients here are 0
     const int32_t id = list[k];
     const scalar_t* rec = &s.records[id * stride];
-    int lo, hi;
-    block_range<TS>(s.rows[2 * id] - yb, s.rows[2 * id + 1] - yb, lo, hi);
+    const int lo = std::max(s.rows[2 * id] - yb, 0) * TS, hi = (std::min(s.rows[2 * id + 1] - yb, TS - 1) + 1) * TS;
     const scalar_t mx = rec[0], my = rec[1], a = rec[2], b = rec[3], c = rec[4], o = rec[5];
     const scalar_t* f = rec + kHead;
     scalar_t* out = grads + static_cast<int64_t>(k) * n_k;
@@ -314,53 +302,47 @@ void backward_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count,
         for (int p = lo; p < hi; ++p) h[p] += g_ch[p] * fc;
       }
     }
-    // per-lane sums over the blocks, added across lanes once per Gaussian (a tree: few adds)
-    constexpr int kSums = 6 + (NC > 0 ? NC : 0);
-    alignas(64) scalar_t lane[kSums][kBlock] = {};
-    for (int p0 = lo; p0 < hi; p0 += kBlock) {
-#pragma omp simd
-      for (int i = 0; i < kBlock; ++i) {
-        const int p = p0 + i;
-        scalar_t hp;
-        if constexpr (NC > 0) {
-          hp = g_alpha_ch[p];
-          for (int ch = 0; ch < NC; ++ch) hp += g[ch * P + p] * f[ch];
-        } else {
-          hp = h[p];
-        }
-        const scalar_t dx = pxs[p] - mx, dy = pys[p] - my;
-        const scalar_t raw = o * exp_row(power_at(dx, dy, a, b, c));
-        const bool unclamped = raw < amax;
-        const scalar_t alpha = unclamped ? raw : amax;
-        const bool vis = (k < stop[p]) & (alpha > amin);
-        const scalar_t t = trans[p];
-        const scalar_t wi = vis ? alpha * t : scalar_t(0);
-        const scalar_t pre = prefix[p] + wi * hp;
-        prefix[p] = pre;
-        const scalar_t g_alpha = t * hp - (total[p] - pre) / (scalar_t(1) - alpha);
-        const scalar_t g_pow = (vis & unclamped) ? g_alpha * alpha : scalar_t(0);
-        trans[p] = vis ? t * (scalar_t(1) - alpha) : t;
-        lane[0][i] += g_pow * (a * dx + b * dy);
-        lane[1][i] += g_pow * (b * dx + c * dy);
-        lane[2][i] += g_pow * dx * dx;
-        lane[3][i] += g_pow * dx * dy;
-        lane[4][i] += g_pow * dy * dy;
-        lane[5][i] += g_pow;
-        if constexpr (NC > 0) {
-          for (int ch = 0; ch < NC; ++ch) lane[6 + ch][i] += wi * g[ch * P + p];
-        } else {
-          w[p] = wi;
-        }
+    scalar_t s_mx = 0, s_my = 0, s_a = 0, s_b = 0, s_c = 0, s_lo = 0;
+    // feature sums as scalars (an array reduction is combined lane by lane, ~3x slower here)
+    static_assert(NC <= 5, "fused channel count above 5");
+    scalar_t s_f0 = 0, s_f1 = 0, s_f2 = 0, s_f3 = 0, s_f4 = 0;
+#pragma omp simd reduction(+ : s_mx, s_my, s_a, s_b, s_c, s_lo, s_f0, s_f1, s_f2, s_f3, s_f4)
+    for (int p = lo; p < hi; ++p) {
+      scalar_t hp;
+      if constexpr (NC > 0) {
+        hp = g_alpha_ch[p];
+        for (int ch = 0; ch < NC; ++ch) hp += g[ch * P + p] * f[ch];
+      } else {
+        hp = h[p];
+      }
+      const scalar_t dx = pxs[p] - mx, dy = pys[p] - my;
+      const scalar_t raw = o * exp_row(power_at(dx, dy, a, b, c));
+      const bool unclamped = raw < amax;
+      const scalar_t alpha = unclamped ? raw : amax;
+      const bool vis = (k < stop[p]) & (alpha > amin);
+      const scalar_t t = trans[p];
+      const scalar_t wi = vis ? alpha * t : scalar_t(0);
+      const scalar_t pre = prefix[p] + wi * hp;
+      prefix[p] = pre;
+      const scalar_t g_alpha = t * hp - (total[p] - pre) / (scalar_t(1) - alpha);
+      const scalar_t g_pow = (vis & unclamped) ? g_alpha * alpha : scalar_t(0);
+      trans[p] = vis ? t * (scalar_t(1) - alpha) : t;
+      s_mx += g_pow * (a * dx + b * dy);
+      s_my += g_pow * (b * dx + c * dy);
+      s_a += g_pow * dx * dx;
+      s_b += g_pow * dx * dy;
+      s_c += g_pow * dy * dy;
+      s_lo += g_pow;
+      if constexpr (NC > 0) {
+        s_f0 += wi * g[p];
+        if constexpr (NC > 1) s_f1 += wi * g[P + p];
+        if constexpr (NC > 2) s_f2 += wi * g[2 * P + p];
+        if constexpr (NC > 3) s_f3 += wi * g[3 * P + p];
+        if constexpr (NC > 4) s_f4 += wi * g[4 * P + p];
+      } else {
+        w[p] = wi;
       }
     }
-    for (int width = kBlock / 2; width >= 1; width /= 2) {
-      for (int j = 0; j < kSums; ++j) {
-#pragma omp simd
-        for (int i = 0; i < width; ++i) lane[j][i] += lane[j][i + width];
-      }
-    }
-    const scalar_t s_mx = lane[0][0], s_my = lane[1][0], s_a = lane[2][0], s_b = lane[3][0], s_c = lane[4][0];
-    const scalar_t s_lo = lane[5][0];
     out[0] = s_mx;
     out[1] = s_my;
     out[2] = scalar_t(-0.5) * s_a;
@@ -368,7 +350,8 @@ void backward_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count,
     out[4] = scalar_t(-0.5) * s_c;
     out[5] = s_lo;
     if constexpr (NC > 0) {
-      for (int ch = 0; ch < NC; ++ch) out[kHead + ch] = lane[6 + ch][0];
+      const scalar_t sums[5] = {s_f0, s_f1, s_f2, s_f3, s_f4};
+      for (int ch = 0; ch < NC; ++ch) out[kHead + ch] = sums[ch];
     } else {
       for (int64_t ch = 0; ch < nc; ++ch) {
         const scalar_t* g_ch = g + ch * P;
@@ -385,10 +368,11 @@ void backward_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count,
 // lists are returned for the backward.
 template <typename scalar_t, int TS, int NC>
 void forward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, scalar_t* out, int32_t* stops,
-                 std::vector<int64_t>& offsets, std::vector<int32_t>& ids) {
+                 std::vector<int64_t>& offsets, std::vector<int32_t>& ids, std::vector<uint8_t>& used) {
   constexpr int P = TS * TS;
   const Scene<scalar_t> s = pack<scalar_t>(in, TS, rules, threads);
   bin(s, offsets, ids, threads);
+  used.assign(ids.size(), 0);
   const int64_t n_tiles = static_cast<int64_t>(s.tiles_x) * s.tiles_y, n_ch = s.n_feat + 2;
   const int width = in.width, height = in.height;
 #pragma omp parallel num_threads(threads)
@@ -399,7 +383,7 @@ void forward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, sc
       const int64_t c = t / n_tiles, local = t % n_tiles;
       const int tx = static_cast<int>(local % s.tiles_x), ty = static_cast<int>(local / s.tiles_x);
       composite_tile<scalar_t, TS, NC>(s, ids.data() + offsets[t], static_cast<int32_t>(offsets[t + 1] - offsets[t]),
-                                       tx, ty, rules, acc.data(), stops + t * P);
+                                       tx, ty, rules, acc.data(), stops + t * P, used.data() + offsets[t]);
       for (int p = 0; p < P; ++p) {
         const int x = tx * TS + p % TS, y = ty * TS + p / TS;
         if (x >= width || y >= height) continue;
@@ -415,7 +399,7 @@ void forward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, sc
 // g_features (shape of the features; both zero-filled by the caller).
 template <typename scalar_t, int TS, int NC>
 void backward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, const int64_t* offsets,
-                  const int32_t* ids, int64_t n_isect, const int32_t* stops, const scalar_t* out,
+                  const int32_t* ids, const uint8_t* used, int64_t n_isect, const int32_t* stops, const scalar_t* out,
                   const scalar_t* grad_out, scalar_t* gm, scalar_t* gc, scalar_t* gd, scalar_t* go, scalar_t* gf) {
   constexpr int P = TS * TS;
   const Scene<scalar_t> s = pack<scalar_t>(in, TS, rules, threads);
@@ -447,7 +431,7 @@ void backward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, c
         }
       }
       backward_tile<scalar_t, TS, NC>(s, ids + offsets[t], static_cast<int32_t>(offsets[t + 1] - offsets[t]), tx, ty,
-                                  rules, g.data(), total.data(), stop.data(), grads.data() + offsets[t] * n_k);
+                                  rules, g.data(), total.data(), stop.data(), used + offsets[t], grads.data() + offsets[t] * n_k);
     }
   }
   // sum the intersections of each Gaussian (serial: the lists of one Gaussian span many tiles)
@@ -482,9 +466,10 @@ void backward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, c
 #ifdef RASTER_KERNELS_ONLY
 // Standalone build of the kernels (vectorisation reports, no torch headers).
 __attribute__((used)) void kernels_float8(const Inputs<float>& in, const Rules& rules, float* out, int32_t* stops,
-                    std::vector<int64_t>& offsets, std::vector<int32_t>& ids, float* g) {
-  forward_all<float, 8, 5>(in, rules, 1, out, stops, offsets, ids);
-  backward_all<float, 8, 5>(in, rules, 1, offsets.data(), ids.data(), static_cast<int64_t>(ids.size()), stops, out, out,
+                    std::vector<int64_t>& offsets, std::vector<int32_t>& ids, std::vector<uint8_t>& used, float* g) {
+  forward_all<float, 8, 5>(in, rules, 1, out, stops, offsets, ids, used);
+  backward_all<float, 8, 5>(in, rules, 1, offsets.data(), ids.data(), used.data(), static_cast<int64_t>(ids.size()), stops,
+                            out, out,
                          g, g, g, g, g);
 }
 #else
@@ -543,13 +528,16 @@ std::vector<at::Tensor> rasterize_forward(const at::Tensor& means2d, const at::T
     at::Tensor stops = at::empty({in.n_cams * n_tiles * TS * TS}, radii.options());
     std::vector<int64_t> offsets;
     std::vector<int32_t> ids;
+    std::vector<uint8_t> used;
     forward_all<scalar_t, TS, NC>(in, r, at::get_num_threads(), out.data_ptr<scalar_t>(), stops.data_ptr<int32_t>(),
-                              offsets, ids);
+                                  offsets, ids, used);
     at::Tensor offsets_t = at::empty({static_cast<int64_t>(offsets.size())}, at::kLong);
     std::memcpy(offsets_t.data_ptr<int64_t>(), offsets.data(), offsets.size() * sizeof(int64_t));
     at::Tensor ids_t = at::empty({static_cast<int64_t>(ids.size())}, at::kInt);
     if (!ids.empty()) std::memcpy(ids_t.data_ptr<int32_t>(), ids.data(), ids.size() * sizeof(int32_t));
-    return std::vector<at::Tensor>{out, offsets_t, ids_t, stops};
+    at::Tensor used_t = at::empty({static_cast<int64_t>(used.size())}, at::kByte);
+    if (!used.empty()) std::memcpy(used_t.data_ptr<uint8_t>(), used.data(), used.size());
+    return std::vector<at::Tensor>{out, offsets_t, ids_t, used_t, stops};
   });
 }
 
@@ -557,7 +545,8 @@ std::vector<at::Tensor> rasterize_backward(const at::Tensor& means2d, const at::
                                            const at::Tensor& opacities, const at::Tensor& features,
                                            const at::Tensor& depths, const at::Tensor& radii, int64_t width,
                                            int64_t height, int64_t tile, const std::vector<double>& rules,
-                                           const at::Tensor& offsets, const at::Tensor& ids, const at::Tensor& stops,
+                                           const at::Tensor& offsets, const at::Tensor& ids, const at::Tensor& used,
+                                           const at::Tensor& stops,
                                            const at::Tensor& out, const at::Tensor& grad_out) {
   TORCH_CHECK(grad_out.is_contiguous() && grad_out.sizes() == out.sizes(), "raster_cpu: grad_out must match out");
   const Rules r = rules_from(rules);
@@ -568,7 +557,9 @@ std::vector<at::Tensor> rasterize_backward(const at::Tensor& means2d, const at::
     at::Tensor g_means2d = at::empty_like(means2d), g_conics = at::empty_like(conics);
     at::Tensor g_depths = at::empty_like(depths), g_opacities = at::zeros_like(opacities);
     at::Tensor g_features = at::zeros_like(features);
+    TORCH_CHECK(used.scalar_type() == at::kByte && used.numel() == ids.numel(), "raster_cpu: used must match ids");
     backward_all<scalar_t, TS, NC>(in, r, at::get_num_threads(), offsets.data_ptr<int64_t>(), ids.data_ptr<int32_t>(),
+                                   used.data_ptr<uint8_t>(),
                                ids.numel(), stops.data_ptr<int32_t>(), out.data_ptr<scalar_t>(),
                                grad_out.data_ptr<scalar_t>(), g_means2d.data_ptr<scalar_t>(),
                                g_conics.data_ptr<scalar_t>(), g_depths.data_ptr<scalar_t>(),
