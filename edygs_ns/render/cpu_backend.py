@@ -11,7 +11,7 @@ parity tests compare against. Why this split and toolchain: docs/cpu_rasterizer.
 
 from __future__ import annotations
 
-from typing import List, Optional
+from typing import List, Optional, Tuple
 
 import torch
 from jaxtyping import Float
@@ -40,29 +40,32 @@ def compiled_available() -> bool:
 
 
 class _CompiledRaster(torch.autograd.Function):
-    """[C, H, W, D + 2] composited features, depth sum and alpha; backward in C++ to the inputs."""
+    """Composited features [C, H, W, D], depth sum and alpha [C, H, W, 1]; backward in C++ to the inputs."""
 
     @staticmethod
     def forward(  # type: ignore[override]
         ctx, means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, depths: Tensor,
         radii: Tensor, size: tuple,
-    ) -> Tensor:
+    ) -> Tuple[Tensor, Tensor, Tensor]:
         ext = load_extension()
         width, height, tile = size
         inputs = [t.detach().contiguous() for t in (means2d, conics, opacities, features, depths)]
-        out, offsets, ids, used, stops = ext.forward(*inputs, radii.contiguous(), width, height, tile, RULES)
+        colour, depth_sum, alpha, offsets, ids, used, stops = ext.forward(
+            *inputs, radii.contiguous(), width, height, tile, RULES
+        )
         ctx.size = size
-        ctx.save_for_backward(*inputs, radii, offsets, ids, used, stops, out)
-        return out
+        ctx.save_for_backward(*inputs, radii, offsets, ids, used, stops, colour, depth_sum, alpha)
+        return colour, depth_sum, alpha
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, grad_out: Tensor):  # type: ignore[override]
-        means2d, conics, opacities, features, depths, radii, offsets, ids, used, stops, out = ctx.saved_tensors
+    def backward(ctx, *grad_outs: Optional[Tensor]):  # type: ignore[override]
+        *inputs, radii, offsets, ids, used, stops, colour, depth_sum, alpha = ctx.saved_tensors
+        outs = [colour, depth_sum, alpha]
+        grads_in = [torch.zeros_like(o) if g is None else g.contiguous() for g, o in zip(grad_outs, outs)]
         width, height, tile = ctx.size
         grads = load_extension().backward(
-            means2d, conics, opacities, features, depths, radii.contiguous(), width, height, tile, RULES,
-            offsets, ids, used, stops, out, grad_out.contiguous(),
+            *inputs, radii.contiguous(), width, height, tile, RULES, offsets, ids, used, stops, outs, grads_in,
         )
         return (*grads, None, None)
 
@@ -113,11 +116,10 @@ def rasterize_cpu(
     if means2d.requires_grad:
         means2d.retain_grad()
     dtype = means2d.dtype
-    image = _CompiledRaster.apply(
+    colour, depth_sum, alpha = _CompiledRaster.apply(
         means2d, proj.conics, opacities.to(dtype), features.to(dtype), proj.depths, proj.radii,
         (width, height, TILE_SIZE),
     )
-    colour, depth_sum, alpha = image[..., :n_channels], image[..., n_channels : n_channels + 1], image[..., -1:]
     if backgrounds is not None:
         colour = colour + (1.0 - alpha) * backgrounds[:, None, None, :]
     depth = depth_sum / alpha.clamp(min=MIN_ALPHA_FOR_DEPTH)

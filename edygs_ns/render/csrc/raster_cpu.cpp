@@ -18,6 +18,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <memory>
 #include <numeric>
 #include <vector>
 
@@ -285,7 +286,10 @@ void backward_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count,
   const scalar_t amax = rules.alpha_max, amin = rules.alpha_min;
   const scalar_t* g_alpha_ch = g + nc * P;  // the alpha channel's feature is 1
   for (int32_t k = 0; k < std::min(last, count); ++k) {
-    if (!used[k]) continue;  // composited nowhere in this tile: its gradients here are 0
+    if (!used[k]) {  // composited nowhere in this tile: its gradients here are 0
+      std::fill(grads + static_cast<int64_t>(k) * n_k, grads + static_cast<int64_t>(k + 1) * n_k, scalar_t(0));
+      continue;
+    }
     const int32_t id = list[k];
     const scalar_t* rec = &s.records[id * stride];
     const int lo = std::max(s.rows[2 * id] - yb, 0) * TS, hi = (std::min(s.rows[2 * id + 1] - yb, TS - 1) + 1) * TS;
@@ -362,12 +366,16 @@ void backward_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count,
       }
     }
   }
+  // the Gaussians behind every pixel's stop get no gradient from this tile
+  std::fill(grads + std::min<int64_t>(last, count) * n_k, grads + static_cast<int64_t>(count) * n_k, scalar_t(0));
 }
 
-// Forward of every tile: out [C, H, W, F] (written inside the image), stops [C * T * P]; the tile
+// Forward of every tile: colour [C, H, W, D], depth and alpha [C, H, W] (every pixel written),
+// stops [C * T * P]; the tile
 // lists are returned for the backward.
 template <typename scalar_t, int TS, int NC>
-void forward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, scalar_t* out, int32_t* stops,
+void forward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, scalar_t* colour, scalar_t* depth,
+                 scalar_t* alpha, int32_t* stops,
                  std::vector<int64_t>& offsets, std::vector<int32_t>& ids, std::vector<uint8_t>& used) {
   constexpr int P = TS * TS;
   const Scene<scalar_t> s = pack<scalar_t>(in, TS, rules, threads);
@@ -387,8 +395,10 @@ void forward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, sc
       for (int p = 0; p < P; ++p) {
         const int x = tx * TS + p % TS, y = ty * TS + p / TS;
         if (x >= width || y >= height) continue;
-        scalar_t* px = out + ((c * height + y) * width + x) * n_ch;
-        for (int64_t ch = 0; ch < n_ch; ++ch) px[ch] = acc[ch * P + p];
+        const int64_t pix = (c * height + y) * width + x;
+        for (int64_t ch = 0; ch < n_ch - 2; ++ch) colour[pix * (n_ch - 2) + ch] = acc[ch * P + p];
+        depth[pix] = acc[(n_ch - 2) * P + p];
+        alpha[pix] = acc[(n_ch - 1) * P + p];
       }
     }
   }
@@ -399,14 +409,14 @@ void forward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, sc
 // g_features (shape of the features; both zero-filled by the caller).
 template <typename scalar_t, int TS, int NC>
 void backward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, const int64_t* offsets,
-                  const int32_t* ids, const uint8_t* used, int64_t n_isect, const int32_t* stops, const scalar_t* out,
-                  const scalar_t* grad_out, scalar_t* gm, scalar_t* gc, scalar_t* gd, scalar_t* go, scalar_t* gf) {
+                  const int32_t* ids, const uint8_t* used, int64_t n_isect, const int32_t* stops,
+                  const scalar_t* const outs[3], const scalar_t* const grad_outs[3], scalar_t* gm, scalar_t* gc, scalar_t* gd, scalar_t* go, scalar_t* gf) {
   constexpr int P = TS * TS;
   const Scene<scalar_t> s = pack<scalar_t>(in, TS, rules, threads);
   const int64_t n_tiles = static_cast<int64_t>(s.tiles_x) * s.tiles_y, d = s.n_feat, n_ch = d + 2;
   const int64_t n_k = kHead + d + 1;
   const int width = in.width, height = in.height;
-  std::vector<scalar_t> grads(n_isect * n_k);
+  std::unique_ptr<scalar_t[]> grads(new scalar_t[std::max<int64_t>(n_isect * n_k, 1)]);  // every row written
 #pragma omp parallel num_threads(threads)
   {
     std::vector<scalar_t> g(n_ch * P), total(P);
@@ -424,14 +434,17 @@ void backward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, c
           continue;
         }
         stop[p] = stops[t * P + p];
-        const int64_t at_px = ((c * height + y) * width + x) * n_ch;
+        const int64_t pix = (c * height + y) * width + x;
         for (int64_t ch = 0; ch < n_ch; ++ch) {
-          g[ch * P + p] = grad_out[at_px + ch];
-          total[p] += grad_out[at_px + ch] * out[at_px + ch];
+          // channels: D colours, then depth, then alpha (one value per pixel each)
+          const int plane = ch < d ? 0 : static_cast<int>(ch - d + 1);
+          const int64_t at = plane == 0 ? pix * d + ch : pix;
+          g[ch * P + p] = grad_outs[plane][at];
+          total[p] += grad_outs[plane][at] * outs[plane][at];
         }
       }
       backward_tile<scalar_t, TS, NC>(s, ids + offsets[t], static_cast<int32_t>(offsets[t + 1] - offsets[t]), tx, ty,
-                                  rules, g.data(), total.data(), stop.data(), used + offsets[t], grads.data() + offsets[t] * n_k);
+                                  rules, g.data(), total.data(), stop.data(), used + offsets[t], grads.get() + offsets[t] * n_k);
     }
   }
   // sum the intersections of each Gaussian (serial: the lists of one Gaussian span many tiles)
@@ -467,9 +480,10 @@ void backward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, c
 // Standalone build of the kernels (vectorisation reports, no torch headers).
 __attribute__((used)) void kernels_float8(const Inputs<float>& in, const Rules& rules, float* out, int32_t* stops,
                     std::vector<int64_t>& offsets, std::vector<int32_t>& ids, std::vector<uint8_t>& used, float* g) {
-  forward_all<float, 8, 5>(in, rules, 1, out, stops, offsets, ids, used);
+  forward_all<float, 8, 5>(in, rules, 1, out, out, out, stops, offsets, ids, used);
+  const float* const three[3] = {out, out, out};
   backward_all<float, 8, 5>(in, rules, 1, offsets.data(), ids.data(), used.data(), static_cast<int64_t>(ids.size()), stops,
-                            out, out,
+                            three, three,
                          g, g, g, g, g);
 }
 #else
@@ -524,12 +538,15 @@ std::vector<at::Tensor> rasterize_forward(const at::Tensor& means2d, const at::T
     constexpr int TS = decltype(ts)::value, NC = decltype(nc)::value;
     const Inputs<scalar_t> in = inputs_of<scalar_t>(means2d, conics, opacities, features, depths, radii, width, height);
     const int64_t n_tiles = ((width + TS - 1) / TS) * ((height + TS - 1) / TS);
-    at::Tensor out = at::zeros({in.n_cams, height, width, in.n_feat + 2}, means2d.options());
+    at::Tensor colour = at::empty({in.n_cams, height, width, in.n_feat}, means2d.options());
+    at::Tensor depth = at::empty({in.n_cams, height, width, 1}, means2d.options());
+    at::Tensor alpha = at::empty({in.n_cams, height, width, 1}, means2d.options());
     at::Tensor stops = at::empty({in.n_cams * n_tiles * TS * TS}, radii.options());
     std::vector<int64_t> offsets;
     std::vector<int32_t> ids;
     std::vector<uint8_t> used;
-    forward_all<scalar_t, TS, NC>(in, r, at::get_num_threads(), out.data_ptr<scalar_t>(), stops.data_ptr<int32_t>(),
+    forward_all<scalar_t, TS, NC>(in, r, at::get_num_threads(), colour.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
+                                  alpha.data_ptr<scalar_t>(), stops.data_ptr<int32_t>(),
                                   offsets, ids, used);
     at::Tensor offsets_t = at::empty({static_cast<int64_t>(offsets.size())}, at::kLong);
     std::memcpy(offsets_t.data_ptr<int64_t>(), offsets.data(), offsets.size() * sizeof(int64_t));
@@ -537,7 +554,7 @@ std::vector<at::Tensor> rasterize_forward(const at::Tensor& means2d, const at::T
     if (!ids.empty()) std::memcpy(ids_t.data_ptr<int32_t>(), ids.data(), ids.size() * sizeof(int32_t));
     at::Tensor used_t = at::empty({static_cast<int64_t>(used.size())}, at::kByte);
     if (!used.empty()) std::memcpy(used_t.data_ptr<uint8_t>(), used.data(), used.size());
-    return std::vector<at::Tensor>{out, offsets_t, ids_t, used_t, stops};
+    return std::vector<at::Tensor>{colour, depth, alpha, offsets_t, ids_t, used_t, stops};
   });
 }
 
@@ -546,9 +563,14 @@ std::vector<at::Tensor> rasterize_backward(const at::Tensor& means2d, const at::
                                            const at::Tensor& depths, const at::Tensor& radii, int64_t width,
                                            int64_t height, int64_t tile, const std::vector<double>& rules,
                                            const at::Tensor& offsets, const at::Tensor& ids, const at::Tensor& used,
-                                           const at::Tensor& stops,
-                                           const at::Tensor& out, const at::Tensor& grad_out) {
-  TORCH_CHECK(grad_out.is_contiguous() && grad_out.sizes() == out.sizes(), "raster_cpu: grad_out must match out");
+                                           const at::Tensor& stops, const std::vector<at::Tensor>& outs,
+                                           const std::vector<at::Tensor>& grad_outs) {
+  TORCH_CHECK(outs.size() == 3 && grad_outs.size() == 3, "raster_cpu: colour, depth and alpha and their gradients");
+  for (int i = 0; i < 3; ++i) {
+    TORCH_CHECK(grad_outs[i].is_contiguous() && outs[i].is_contiguous() && grad_outs[i].sizes() == outs[i].sizes(),
+                "raster_cpu: each gradient must be contiguous and match its output");
+  }
+  TORCH_CHECK(used.scalar_type() == at::kByte && used.numel() == ids.numel(), "raster_cpu: used must match ids");
   const Rules r = rules_from(rules);
   return dispatch(means2d, tile, features.size(-1), [&](auto scalar, auto ts, auto nc) {
     using scalar_t = decltype(scalar);
@@ -557,13 +579,15 @@ std::vector<at::Tensor> rasterize_backward(const at::Tensor& means2d, const at::
     at::Tensor g_means2d = at::empty_like(means2d), g_conics = at::empty_like(conics);
     at::Tensor g_depths = at::empty_like(depths), g_opacities = at::zeros_like(opacities);
     at::Tensor g_features = at::zeros_like(features);
-    TORCH_CHECK(used.scalar_type() == at::kByte && used.numel() == ids.numel(), "raster_cpu: used must match ids");
+    const scalar_t* const out_p[3] = {outs[0].data_ptr<scalar_t>(), outs[1].data_ptr<scalar_t>(),
+                                      outs[2].data_ptr<scalar_t>()};
+    const scalar_t* const grad_p[3] = {grad_outs[0].data_ptr<scalar_t>(), grad_outs[1].data_ptr<scalar_t>(),
+                                       grad_outs[2].data_ptr<scalar_t>()};
     backward_all<scalar_t, TS, NC>(in, r, at::get_num_threads(), offsets.data_ptr<int64_t>(), ids.data_ptr<int32_t>(),
-                                   used.data_ptr<uint8_t>(),
-                               ids.numel(), stops.data_ptr<int32_t>(), out.data_ptr<scalar_t>(),
-                               grad_out.data_ptr<scalar_t>(), g_means2d.data_ptr<scalar_t>(),
-                               g_conics.data_ptr<scalar_t>(), g_depths.data_ptr<scalar_t>(),
-                               g_opacities.data_ptr<scalar_t>(), g_features.data_ptr<scalar_t>());
+                                   used.data_ptr<uint8_t>(), ids.numel(), stops.data_ptr<int32_t>(), out_p, grad_p,
+                                   g_means2d.data_ptr<scalar_t>(), g_conics.data_ptr<scalar_t>(),
+                                   g_depths.data_ptr<scalar_t>(), g_opacities.data_ptr<scalar_t>(),
+                                   g_features.data_ptr<scalar_t>());
     return std::vector<at::Tensor>{g_means2d, g_conics, g_opacities, g_features, g_depths};
   });
 }
