@@ -20,11 +20,13 @@ def test_a_short_run_keeps_the_shape_of_the_schedule():
         "--pipeline.model.schedule.pose-init-iters": 300,
         "--pipeline.model.schedule.static-iters": 900,
         "--pipeline.model.schedule.dynamic-window-ramp-iters": 450,
+        "--pipeline.model.schedule.evidence-refresh-iters": 600,
         "--pipeline.model.densify.refine-start-iter": 200,
         "--pipeline.model.densify.refine-stop-iter": 2250,
     }
     # the time window widens over the same share of the run as at full length
     assert PhaseSchedule().dynamic_window_ramp_iters / MAX_ITERATIONS == pytest.approx(RunShape().window_ramp)
+    assert PhaseSchedule().evidence_refresh_iters / MAX_ITERATIONS == pytest.approx(RunShape().refresh)
     with pytest.raises(ValueError, match="iters must be >= 10"):
         run_length_args(5)
 
@@ -42,6 +44,7 @@ def test_the_cpu_methods_are_the_demo_run():
             "--pipeline.model.schedule.pose-init-iters": model.schedule.pose_init_iters,
             "--pipeline.model.schedule.static-iters": model.schedule.static_iters,
             "--pipeline.model.schedule.dynamic-window-ramp-iters": model.schedule.dynamic_window_ramp_iters,
+            "--pipeline.model.schedule.evidence-refresh-iters": model.schedule.evidence_refresh_iters,
             "--pipeline.model.densify.refine-start-iter": model.densify.refine_start_iter,
             "--pipeline.model.densify.refine-stop-iter": model.densify.refine_stop_iter,
         }

@@ -27,6 +27,9 @@ class RunShape:
     window_ramp: float = 0.15
     """widening of the dynamic-phase time window, from the dynamic start (the
     full-length share, 3000 of 20k; docs/method.md)"""
+    refresh: float = 0.2
+    """motion-evidence refresh, counted from the dynamic start (after the window
+    has widened to the whole clip)"""
     refine_start: float = 1.0 / 15.0
     """first densification step"""
     refine_stop: float = 0.75
@@ -42,6 +45,7 @@ def run_length_args(iters: int, shape: RunShape = RunShape()) -> List[str]:
         "--pipeline.model.schedule.pose-init-iters", str(int(iters * shape.pose_init)),
         "--pipeline.model.schedule.static-iters", str(int(iters * shape.static)),
         "--pipeline.model.schedule.dynamic-window-ramp-iters", str(int(iters * shape.window_ramp)),
+        "--pipeline.model.schedule.evidence-refresh-iters", str(int(iters * shape.refresh)),
         "--pipeline.model.densify.refine-start-iter", str(max(int(iters * shape.refine_start), 1)),
         "--pipeline.model.densify.refine-stop-iter", str(int(iters * shape.refine_stop)),
     ]
@@ -62,7 +66,8 @@ def shape_trainer(config, iters: int, shape: RunShape = RunShape()):
     run_length_args(iters, shape)  # validates iters
     model = config.pipeline.model
     schedule = replace(model.schedule, pose_init_iters=int(iters * shape.pose_init), static_iters=int(iters * shape.static),
-                       dynamic_window_ramp_iters=int(iters * shape.window_ramp))
+                       dynamic_window_ramp_iters=int(iters * shape.window_ramp),
+                       evidence_refresh_iters=int(iters * shape.refresh))
     densify = replace(model.densify, refine_start_iter=max(int(iters * shape.refine_start), 1),
                       refine_stop_iter=int(iters * shape.refine_stop))
     config.pipeline = replace(config.pipeline, model=replace(model, schedule=schedule, densify=densify))

@@ -104,6 +104,11 @@ class DynamicSeedingConfig:
     """at most this many moving objects get seeds and a rigid body (model/motion_init.py)"""
     max_candidates: int = 10
     """at most this many evidence regions are tracked (movers and still flaws of the static model)"""
+    refresh_candidates: int = 3
+    """at the evidence refresh (schedule.evidence_refresh_iters), at most this many new regions are tracked"""
+    refresh_margin: float = 0.03
+    """at the refresh, evidence within this fraction of the width of the rendered or targeted mask
+    belongs to the objects already found"""
     still_shift: float = 0.5
     """a tracked region is a mover only if, in some latent, it lies this many of its radii from
     where any static point on its reference ray would be (and ``still_shift_fraction``)"""

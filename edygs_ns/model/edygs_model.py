@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import Dict, List, Literal, Optional, Tuple, Type, Union
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 from torch.nn import Parameter
 
@@ -32,7 +33,7 @@ from edygs_ns.model.appearance import MAX_SH_DEGREE, sh_to_rgb
 from edygs_ns.model.deformation import DeformationConfig, DeformationField, RigidMotion
 from edygs_ns.model.exposure_cache import NO_EXPOSURE, ExposureCache
 from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig, evidence_track, fit_motion, motion_evidence, seed_gaussians
-from edygs_ns.model.motion_init import initialise_motion
+from edygs_ns.model.motion_init import MotionInit, initialise_motion
 from edygs_ns.model.rigid_track import RigidTrackConfig
 from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES, init_gaussians, seed_tensors
 from edygs_ns.model.splat_export_view import SplatExportView
@@ -245,6 +246,8 @@ class EdygsModel(SplatExportView):
         self.apply_phase(self.phase)
         if self.phase is Phase.DYNAMIC and self.config.use_motion_mask and self.static_masks.numel() == 0:
             self.enter_dynamic_phase()
+        if step == self.config.schedule.refresh_step and self.seeding_active:
+            self.refresh_motion()
         if self._set_time_window is not None and self.seeding_active:
             self._set_time_window(time_window(step, self.config.schedule, self.config.seeding.reference_time))
 
@@ -286,6 +289,101 @@ class EdygsModel(SplatExportView):
             p.requires_grad_(flags[CAMERA_GROUP])
 
     @torch.no_grad()
+    def _render_latents(self, deform: bool, with_evidence: bool) -> Dict[str, Tensor]:
+        """Render every training latent at its refined pose: "mask" [N, H, W]; with_evidence also
+        "rgb" [N, H, W, 3], "residual" |rgb − latent| [N, H, W], "depth" [N, H, W] (0 where the
+        accumulation is below 0.5) and "c2w" [N, 3, 4] (nerfstudio axes)."""
+        cameras = self._train_cameras.to(self.device)
+        keys = ("mask", "rgb", "residual", "depth", "c2w") if with_evidence else ("mask",)
+        stacks: Dict[str, List[Tensor]] = {k: [] for k in keys}
+        for i in range(cameras.shape[0]):
+            camera = cameras[i : i + 1]
+            camera.metadata = {"cam_idx": i}
+            out = self.render_cameras(camera, deform=deform)
+            stacks["mask"].append(out["mask"][0, ..., 0])
+            if with_evidence:
+                image = self._train_image(i)[..., :3].to(self.device)
+                stacks["rgb"].append(out["rgb"][0])
+                stacks["residual"].append((out["rgb"][0] - image).abs().mean(dim=-1))
+                depth = out["depth"][0, ..., 0]
+                stacks["depth"].append(torch.where(out["accumulation"][0, ..., 0] > 0.5, depth, torch.zeros_like(depth)))
+                stacks["c2w"].append(self.camera_to_worlds(camera)[0])
+        return {k: torch.stack(v) for k, v in stacks.items()}
+
+    def _latent_times(self) -> Tuple[Tensor, int]:
+        """Normalised time of every training latent [N] and the index of the reference latent."""
+        cameras = self._train_cameras
+        times = cameras.times.reshape(-1).to(self.device) if cameras.times is not None else torch.zeros(cameras.shape[0], device=self.device)
+        return times, int(torch.argmin((times - self.config.seeding.reference_time).abs()))
+
+    def _latent_image(self, i: int) -> Tensor:
+        """Training latent i, RGB [H, W, 3] in [0, 1]."""
+        return self._train_image(i)[..., :3].to(self.device)
+
+    def _find_motion(self, renders: Dict[str, Tensor], evidence: Tensor, **kwargs) -> MotionInit:
+        """``initialise_motion`` on the latents' renders (keyword arguments passed on)."""
+        times, ref = self._latent_times()
+        return initialise_motion(
+            evidence, renders["depth"], renders["rgb"], self._latent_image, viewmats_from_c2w(renders["c2w"]),
+            c2w_opencv(renders["c2w"]), self._train_cameras.get_intrinsics_matrices().to(self.device), times, ref,
+            select_backend(self.device, self.config.rasterizer), self.config.seeding, self.config.rigid_track, **kwargs,
+        )
+
+    def _fit_tracks_into_mlp(self, found: MotionInit) -> str:
+        """With ``rigid_track.as_base_motion`` off: regress the MLP onto the movers' tracks."""
+        movers = found.movers
+        if not movers:
+            return ""
+        points = torch.cat([o.seeds.points for o in movers]).to(self.device)
+        offsets = torch.cat([o.track.apply(o.seeds.points) - o.seeds.points for o in movers], dim=1)
+        losses = fit_motion(self.deformation, points, self._latent_times()[0], offsets.to(points), self.config.seeding)
+        return f", motion initialised (fit loss {losses[0]:.4f} -> {losses[-1]:.4f})" if losses else ""
+
+    def _seed_translation_track(self, renders: Dict[str, Tensor], evidence: Tensor) -> str:
+        """Without rigid tracking: seeds at the reference latent's evidence, the MLP regressed onto
+        the evidence centroid's translation track."""
+        cfg = self.config.seeding
+        times, ref = self._latent_times()
+        depth, c2w_cv = renders["depth"], c2w_opencv(renders["c2w"])
+        Ks = self._train_cameras.get_intrinsics_matrices().to(self.device)
+        seeds = seed_gaussians(evidence[ref], depth[ref], self._latent_image(ref), Ks[ref], c2w_cv[ref], cfg)
+        points = seeds.points
+        message = f", {len(points)} dynamic seeds"
+        new = seed_tensors(points, seeds.colors, seeds.radii, self.config.sh_degree, cfg.seed_opacity, cfg.seed_mask)
+        added = append_gaussians(self.gauss_params, self.optimizers, self.strategy_state, new)
+        track_idx, track_points = evidence_track(evidence, depth, Ks, c2w_cv, cfg)
+        if added and ref in track_idx.tolist():
+            offsets = track_points.to(points) - track_points[track_idx.tolist().index(ref)].to(points)
+            message += f"; translation track on {len(track_idx)} latents"
+            losses = fit_motion(self.deformation, points, times[track_idx.to(times.device)], offsets, cfg)
+            if losses:
+                message += f", motion initialised (fit loss {losses[0]:.4f} -> {losses[-1]:.4f})"
+        return message
+
+    def _add_movers(self, found: MotionInit, first_body: int) -> str:
+        """Seed the movers of ``found`` and give each a rigid body from ``first_body`` on; returns the log lines."""
+        seeds = found.seed_tensors()
+        cfg = self.config.seeding
+        message = ""
+        for j, obj in enumerate(found.movers):
+            message += f"\n  object {first_body + j}: {obj.summary()}"
+            if self.config.rigid_track.as_base_motion:
+                self.rigid_motion.set(obj.track.centre, obj.reach, obj.size, self._latent_times()[0], obj.track.rotvecs,
+                                      obj.track.translations, body=first_body + j)
+        for obj in found.objects:
+            if not obj.moved:
+                message += f"\n  no mover (no seeds): {obj.summary()}"
+        new = seed_tensors(seeds.points.to(self.device), seeds.colors.to(self.device), seeds.radii.to(self.device),
+                           self.config.sh_degree, cfg.seed_opacity, cfg.seed_mask)
+        append_gaussians(self.gauss_params, self.optimizers, self.strategy_state, new)
+        return message
+
+    @property
+    def body_count(self) -> int:
+        """Rigid bodies set so far (movers found at the switch and at the refresh)."""
+        return int((self.rigid_motion.reach > 0).sum())
+
+    @torch.no_grad()
     def enter_dynamic_phase(self) -> None:
         """At the static -> dynamic switch: render every training latent with the static model at
         the refined poses and store the mask-consistency targets M̂; with seeding on, derive motion
@@ -293,74 +391,65 @@ class EdygsModel(SplatExportView):
         if self._train_cameras is None:
             return
         started = time.perf_counter()
-        cameras = self._train_cameras.to(self.device)
         use_evidence = self.seeding_active and self._train_image is not None
-        masks, statics, residuals, depths, cams_to_world = [], [], [], [], []
-        for i in range(cameras.shape[0]):
-            camera = cameras[i : i + 1]
-            camera.metadata = {"cam_idx": i}
-            out = self.render_cameras(camera, deform=False)
-            masks.append(out["mask"][0, ..., 0])
-            if use_evidence:
-                image = self._train_image(i)[..., :3].to(self.device)
-                statics.append(out["rgb"][0])
-                residuals.append((out["rgb"][0] - image).abs().mean(dim=-1))
-                depths.append(torch.where(out["accumulation"][0, ..., 0] > 0.5, out["depth"][0, ..., 0], torch.zeros_like(masks[-1])))
-                cams_to_world.append(self.camera_to_worlds(camera)[0])
-        rendered = torch.stack(masks)
-        message = f"[edygs] dynamic phase from step {self.step}: {len(masks)} mask-consistency targets"
+        renders = self._render_latents(deform=False, with_evidence=use_evidence)
+        rendered = renders["mask"]
+        message = f"[edygs] dynamic phase from step {self.step}: {len(rendered)} mask-consistency targets"
         if not use_evidence:
             self.static_masks = rendered.half()
             CONSOLE.log(message + " (rendered static-phase masks)")
             return
         cfg = self.config.seeding
-        evidence, threshold = motion_evidence(torch.stack(residuals), cfg)
+        evidence, threshold = motion_evidence(renders["residual"], cfg)
         targets = {"evidence": evidence, "rendered": rendered, "max": torch.maximum(rendered, evidence)}
         self.static_masks = targets[cfg.consistency_target].half()
-        depth, c2w_cv = torch.stack(depths), c2w_opencv(torch.stack(cams_to_world))
-        Ks = cameras.get_intrinsics_matrices().to(self.device)
-        times = cameras.times.reshape(-1).to(self.device) if cameras.times is not None else torch.zeros(cameras.shape[0], device=self.device)
-        ref = int(torch.argmin((times - cfg.reference_time).abs()))
-        image = lambda i: self._train_image(i)[..., :3].to(self.device)  # noqa: E731
         message += f" ({cfg.consistency_target}); motion evidence on {100.0 * float(evidence.mean()):.1f}% of pixels (residual > {threshold:.3f})"
-        offsets: Optional[Tensor] = None
         if self.config.rigid_track.enabled:
-            found = initialise_motion(
-                evidence, depth, torch.stack(statics), image, viewmats_from_c2w(torch.stack(cams_to_world)), c2w_cv, Ks, times,
-                ref, select_backend(self.device, self.config.rasterizer), cfg, self.config.rigid_track,
-            )
+            found = self._find_motion(renders, evidence)
             if cfg.consistency_target == "evidence":
                 self.static_masks = found.consistency.half()
-            seeds = found.seed_tensors()
-            points, colors, radii = seeds.points.to(self.device), seeds.colors.to(self.device), seeds.radii.to(self.device)
-            movers = found.movers
-            message += f"; {len(movers)} moving object(s) of {len(found.objects)} tracked region(s), {len(points)} dynamic seeds"
-            for body, obj in enumerate(movers):
-                message += f"\n  object {body}: {obj.summary()}"
-                if self.config.rigid_track.as_base_motion:
-                    self.rigid_motion.set(obj.track.centre, obj.reach, obj.size, times, obj.track.rotvecs, obj.track.translations, body=body)
-            for obj in found.objects:
-                if not obj.moved:
-                    message += f"\n  no mover (no seeds): {obj.summary()}"
-            if movers and not self.config.rigid_track.as_base_motion:
-                offsets = torch.cat([o.track.apply(o.seeds.points) - o.seeds.points for o in movers], dim=1)
-            fit_times = times
+            before = self.num_points
+            message += f"; {len(found.movers)} moving object(s) of {len(found.objects)} tracked region(s)"
+            message += self._add_movers(found, first_body=0) + f"\n  {self.num_points - before} dynamic seeds"
+            if not self.config.rigid_track.as_base_motion:
+                message += self._fit_tracks_into_mlp(found)
         else:
-            seeds = seed_gaussians(evidence[ref], depth[ref], image(ref), Ks[ref], c2w_cv[ref], cfg)
-            points, colors, radii = seeds.points, seeds.colors, seeds.radii
-            message += f", {len(points)} dynamic seeds"
-            track_idx, track_points = evidence_track(evidence, depth, Ks, c2w_cv, cfg)
-            if ref in track_idx.tolist():
-                offsets = track_points.to(points) - track_points[track_idx.tolist().index(ref)].to(points)
-                fit_times = times[track_idx.to(times.device)]
-                message += f"; translation track on {len(track_idx)} latents"
-        new = seed_tensors(points, colors, radii, self.config.sh_degree, cfg.seed_opacity, cfg.seed_mask)
-        added = append_gaussians(self.gauss_params, self.optimizers, self.strategy_state, new)
-        if added and offsets is not None:
-            losses = fit_motion(self.deformation, points, fit_times, offsets, cfg)
-            if losses:
-                message += f", motion initialised (fit loss {losses[0]:.4f} -> {losses[-1]:.4f})"
+            message += self._seed_translation_track(renders, evidence)
         CONSOLE.log(message + f"\n  (switch took {time.perf_counter() - started:.1f} s)")
+
+    @torch.no_grad()
+    def refresh_motion(self) -> None:
+        """Find the motion evidence once more, on the dynamic model: a moving object the switch missed
+        (too faint then, or hidden by the static model's errors) still leaves evidence that nothing
+        dynamic explains. Such evidence, away from the rendered mask and from M̂, is tracked as at
+        the switch; its movers get seeds, a rigid body and their evidence in M̂."""
+        if self._train_cameras is None or self._train_image is None or not self.config.rigid_track.enabled:
+            return
+        if not self.config.rigid_track.as_base_motion or self.static_masks.numel() == 0:
+            return
+        started = time.perf_counter()
+        cfg = self.config.seeding
+        existing = self.body_count
+        if existing >= cfg.max_objects:
+            CONSOLE.log(f"[edygs] evidence refresh at step {self.step}: skipped, all {cfg.max_objects} rigid bodies in use")
+            return
+        renders = self._render_latents(deform=True, with_evidence=True)
+        evidence, threshold = motion_evidence(renders["residual"], cfg)
+        known = (renders["mask"] > 0.5) | (self.static_masks.to(self.device).float() > 0.5)
+        margin = max(1, int(round(cfg.refresh_margin * known.shape[-1])))
+        covered = F.max_pool2d(known[:, None].float(), 2 * margin + 1, stride=1, padding=margin)[:, 0] > 0.5
+        found = self._find_motion(renders, evidence, covered=covered, existing=existing, candidates=cfg.refresh_candidates,
+                                  steady=False)
+        before = self.num_points
+        message = (f"[edygs] evidence refresh at step {self.step}: evidence on {100.0 * float(evidence.mean()):.1f}% of pixels "
+                   f"(residual > {threshold:.3f}), {100.0 * float((evidence.bool() & ~covered).float().mean()):.2f}% unexplained; "
+                   f"{len(found.movers)} new moving object(s) of {len(found.objects)} tracked region(s)")
+        if found.movers:
+            message += self._add_movers(found, first_body=existing)
+            self.static_masks = torch.maximum(self.static_masks, found.consistency.to(self.static_masks))
+        else:
+            message += "".join(f"\n  no mover (no seeds): {o.summary()}" for o in found.objects)
+        CONSOLE.log(message + f"\n  {self.num_points - before} dynamic seeds (refresh took {time.perf_counter() - started:.1f} s)")
 
     # ------------------------------------------------------------ rendering
     def camera_indices(self, camera: Cameras) -> Optional[Tensor]:

@@ -30,6 +30,13 @@ deformation's base motion (``deformation.RigidMotion``), and the mask-consistenc
    told from a flaw (its rotation fit on a few pixels is noise-level evidence).
 4. M̂ is the evidence near the kept objects' tracks (the rest of the evidence is no object).
 
+Once more later (``schedule.evidence_refresh_iters`` into the dynamic phase, ``EdygsModel.refresh_motion``):
+the same steps on the dynamic model's renders, with the zone of the movers found so far given
+as ``covered`` (their evidence is explained, and a track that runs inside it is one of them
+again) and only regions that fit a rigid silhouette kept (the leftover residual near an
+imperfect mover is present everywhere), so an object the switch missed gets its seeds, rigid
+body and M̂ then.
+
 The rigid body is the base of the deformation, not its limit: the MLP's residual (zero at the
 switch) carries what a rigid motion cannot (articulated or deforming objects), and the body's own
 track keeps training with the photometric losses.
@@ -168,17 +175,17 @@ def strays_far(shift_px: float, radius_px: float, width: int, seeding: DynamicSe
     return shift_px >= max(needed, seeding.still_shift_fraction * width)
 
 
-def _duplicate(track: RigidTrack, movers: List[MotionObject], share: float = 0.5) -> bool:
+def _duplicate(track: RigidTrack, claims: List[Tensor], share: float = 0.5) -> bool:
     """Whether ``track`` follows a mover already found: in the median latent where it sees its
-    object, more than ``share`` of its footprint lies in that mover's claimed zone (two tracks of
-    one object, e.g. one started where the object crossed another)."""
+    object, more than ``share`` of its footprint lies in that mover's claimed zone ([N, H, W] bool
+    each; two tracks of one object, e.g. one started where the object crossed another)."""
     own = track.footprints
     sizes = own.flatten(1).sum(dim=1)
     seen = sizes > 0
     if not bool(seen.any()):
         return False
-    for other in movers:
-        inside = (own & other.track.claims).flatten(1).sum(dim=1)[seen] / sizes[seen]
+    for zone in claims:
+        inside = (own & zone).flatten(1).sum(dim=1)[seen] / sizes[seen]
         if float(inside.median()) > share:
             return True
     return False
@@ -197,6 +204,10 @@ def initialise_motion(
     backend: RasterBackend,
     seeding: DynamicSeedingConfig,
     tracking: RigidTrackConfig,
+    covered: Optional[Tensor] = None,
+    existing: int = 0,
+    candidates: Optional[int] = None,
+    steady: bool = True,
 ) -> MotionInit:
     """Find, seed and track every moving object (see the module docstring).
 
@@ -207,14 +218,21 @@ def initialise_motion(
         latent: training image i (RGB in [0, 1]) by index.
         viewmats: world-to-camera (OpenCV axes); cams_to_world_cv: their inverses; Ks: intrinsics.
         times: normalised time of every latent; ref: the reference latent.
+        covered: [N, H, W] bool, pixels already explained (the movers found earlier); None: none.
+        existing: movers found earlier (they count against ``max_objects``).
+        candidates: regions to track at most (default ``max_candidates``).
+        steady: keep a region on its presence alone when its rigid fit is poor (``steady_presence``);
+            off at the refresh, where the dynamic model's leftover residual is present near every
+            imperfect mover and only a region that fits a rigid silhouette is a new object.
     """
     n, height, width = evidence.shape
     min_pixels = max(1, int(round(seeding.min_object_fraction * height * width)))
-    covered = torch.zeros_like(evidence, dtype=torch.bool)
+    earlier = [] if covered is None else [covered.bool()]  # the zone of the movers found before
+    covered = torch.zeros_like(evidence, dtype=torch.bool) if covered is None else covered.clone().bool()
     result = MotionInit()
-    for _ in range(seeding.max_candidates):
+    for _ in range(seeding.max_candidates if candidates is None else candidates):
         found = _next_region(evidence, covered, ref, min_pixels)
-        if found is None or len(result.movers) >= seeding.max_objects:
+        if found is None or existing + len(result.movers) >= seeding.max_objects:
             break
         k, region = found
         # each track costs as much as the largest one: once a large region was tracked, much
@@ -239,9 +257,9 @@ def initialise_motion(
         rigid_fit = len(iou) > 0 and float(iou.mean()) >= seeding.min_object_iou
         # a region followed through most of the clip is real even when one rigid silhouette fits it
         # poorly (a deforming or articulated object): its track then only carries it, see below
-        consistent = presence >= seeding.min_presence and (rigid_fit or presence >= seeding.steady_presence)
+        consistent = presence >= seeding.min_presence and (rigid_fit or (steady and presence >= seeding.steady_presence))
         far = strays_far(shift_px, radius_px, width, seeding, seeding.still_shift if rigid_fit else seeding.steady_shift)
-        moved = consistent and far and not _duplicate(track, result.movers)
+        moved = consistent and far and not _duplicate(track, earlier + [o.track.claims for o in result.movers])
         reach = tracking.reach * float(distances.max())
         if moved and not rigid_fit:
             # poor rigid fit: keep the track's translation as the base motion, drop its rotation (a

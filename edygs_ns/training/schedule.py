@@ -61,6 +61,9 @@ class PhaseSchedule:
     half-width of seeding.reference_time (>= 0.5: off; docs/method.md)"""
     dynamic_window_ramp_iters: int = 3000
     """the window widens linearly to the whole clip over this many dynamic-phase iterations"""
+    evidence_refresh_iters: int = 4000
+    """after this many dynamic-phase iterations the motion evidence is found once more, on the
+    dynamic model, and objects missed at the switch are added (0: never; model/motion_init.py)"""
 
     @property
     def static_start(self) -> int:
@@ -69,6 +72,11 @@ class PhaseSchedule:
     @property
     def dynamic_start(self) -> int:
         return self.pose_init_iters + self.static_iters
+
+    @property
+    def refresh_step(self) -> Optional[int]:
+        """The step at which the motion evidence is re-estimated, or None (never)."""
+        return self.dynamic_start + self.evidence_refresh_iters if self.evidence_refresh_iters > 0 else None
 
 
 def phase_at(step: int, schedule: PhaseSchedule) -> Phase:
