@@ -36,7 +36,7 @@ import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from edygs_ns.configs.run_length import run_length_args
-from edygs_ns.eval.evaluate import evaluate_run
+from edygs_ns.eval.evaluate import INPUT_SPLIT, NOVEL_ANCHORED_SPLIT, NOVEL_SPLIT, NOVEL_UNFITTED_SPLIT, evaluate_run
 from edygs_ns.preprocess.pipeline import ProcessConfig, process
 from edygs_ns.sim.writer import SynthConfig, write_synthetic_scene
 
@@ -50,10 +50,6 @@ VARIANTS: Tuple[Tuple[str, str, Any], ...] = (
     ("+ mask (EDyGS, paper)", "edygs", "paper"),
     ("+ blur (EDyGS, ours)", "edygs", "full"),
 )
-INPUT_SPLIT = "input views"
-NOVEL_SPLIT = "novel views"
-#: The same novel cameras without per-view pose fitting (evaluate_run writes it when it fitted them).
-NOVEL_UNFITTED_SPLIT = "novel views (no pose fit)"
 #: Numbers kept for the reference images (EDI latents, blurry frames) scored on the input views.
 REFERENCE_KEYS = ("psnr", "ssim", "psnr_dynamic", "psnr_static")
 
@@ -186,12 +182,13 @@ def _mean(entry: Any) -> Any:
 
 def row_of(metrics: Dict[str, Any], label: str, seconds: float) -> Dict[str, Any]:
     """The numbers of run ``label`` (its rows in evaluate_run's metrics), flattened: ``input_*``,
-    ``novel_*`` (novel poses fitted per view) and ``novel_nofit_*`` (not fitted; None in metrics
-    written before that split existed)."""
+    ``novel_*`` (novel poses fitted per view), ``novel_nofit_*`` (not fitted) and ``novel_anchor_*``
+    (placed relative to the nearest training latent); None in metrics written before a split existed."""
     splits = metrics[label]
     row: Dict[str, Any] = {"train_seconds": seconds}
-    for split, prefix in ((INPUT_SPLIT, "input"), (NOVEL_SPLIT, "novel"), (NOVEL_UNFITTED_SPLIT, "novel_nofit")):
-        for key in ("psnr", "ssim", "lpips_alex", "mask_iou", "mask_mean", "psnr_dynamic", "psnr_static"):
+    for split, prefix in ((INPUT_SPLIT, "input"), (NOVEL_SPLIT, "novel"), (NOVEL_UNFITTED_SPLIT, "novel_nofit"),
+                          (NOVEL_ANCHORED_SPLIT, "novel_anchor")):
+        for key in ("psnr", "ssim", "lpips_alex", "mask_iou", "mask_mean", "psnr_dynamic", "psnr_static", "psnr_covisible"):
             value = _mean(splits.get(split, {}).get(key))
             row[f"{prefix}_{key}"] = value if isinstance(value, (int, float)) else None
     for split, prefix in (("poses (initial)", "ate_initial"), ("poses (refined)", "ate_refined")):

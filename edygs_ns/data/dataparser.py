@@ -18,6 +18,7 @@ the EDyGS datamanager and model read:
 ``blurry_filenames``      the n_blurry blurry images, indexed by blurry_index
 ``gt_image_filenames``    sharp ground truth aligned with the cameras (only when it exists)
 ``gt_mask_filenames``     ground-truth motion masks aligned with the cameras (only when they exist)
+``gt_covisible_filenames`` novel views: per pixel, how many training latents saw it (8-bit; simulator)
 ``gt_camera_to_worlds``   float32 [N, 3, 4] ground-truth poses, transformed like the cameras
 ``gt_units_scale``        float: length of one ground-truth unit in this frame (the dataparser
                           scale times the Sim(3) scale that moved the ground truth into the
@@ -336,6 +337,8 @@ class EdygsDataParser(DataParser):
         }
         if novel.mask_paths is not None:
             meta["gt_mask_filenames"] = list(novel.mask_paths)
+        if novel.covisible_paths is not None:
+            meta["gt_covisible_filenames"] = list(novel.covisible_paths)
         return self._finish(record, _cameras(novel.intrinsics, c2w, novel.times), list(novel.image_paths), meta)
 
     def _blurry_outputs(self, record: SceneRecord, train_latents: np.ndarray) -> DataparserOutputs:

@@ -60,6 +60,7 @@ from edygs_ns.eval.pose_alignment import (
     Sim3,
     TrainPoses,
     align_cameras,
+    anchor_to_training,
     camera_path_json,
     novel_alignment,
     pose_rows,
@@ -69,7 +70,7 @@ from edygs_ns.eval.pose_alignment import (
 )
 from edygs_ns.eval.report import DEFAULT_NOTES, markdown_table, write_metrics
 from edygs_ns.eval.trajectory import rotation_angle
-from edygs_ns.geometry import align_poses, to_homogeneous
+from edygs_ns.geometry import align_poses, apply_sim3, to_homogeneous
 from edygs_ns.losses.metrics import mask_iou, psnr, ssim
 
 EvalSplit = Literal["input", "novel", "both"]
@@ -80,6 +81,8 @@ NOVEL_SPLIT = "novel views"
 #: The novel cameras as mapped by the training-camera Sim(3), without per-view pose fitting
 #: (written only when NOVEL_SPLIT's poses were fitted; otherwise NOVEL_SPLIT is this protocol).
 NOVEL_UNFITTED_SPLIT = "novel views (no pose fit)"
+#: The same cameras, each placed relative to its nearest training latent (``anchor_to_training``).
+NOVEL_ANCHORED_SPLIT = "novel views (anchored)"
 #: Method rows of the reference images scored against the same ground truth as the input views.
 EDI_REFERENCE = "EDI latent"
 BLURRY_REFERENCE = "blurry input"
@@ -87,6 +90,8 @@ BLURRY_REFERENCE = "blurry input"
 IMAGE_METRIC_KEYS: Tuple[str, ...] = ("psnr", "ssim", "lpips_alex", "lpips_vgg", "mask_iou")
 #: PSNR over the true moving object and over the rest, where the scene has ground-truth masks.
 REGION_PSNR_KEYS: Tuple[str, ...] = ("psnr_dynamic", "psnr_static")
+#: Novel views: PSNR over the pixels some training latent saw (simulator scenes; sim/covisibility.py).
+COVISIBLE_PSNR_KEY = "psnr_covisible"
 #: LPIPS backbones reported (metric key "lpips_<net>").
 LPIPS_NETS: Tuple[str, ...] = ("alex", "vgg")
 #: Columns of the per-view grids.
@@ -116,6 +121,7 @@ class ViewGroup:
         cameras: [V] cameras in the model's frame, with `times`.
         gt_images: V ground-truth sharp images, or None (nothing to compare with).
         gt_masks: V ground-truth motion masks (white = dynamic), or None.
+        gt_covisible: V maps of how many training latents saw each pixel (novel views), or None.
         edi_images: V EDI latent images (input views), or None.
         blurry_images: V blurry input frames the views belong to (input views), or None.
         note: how the poses were chosen, for the report.
@@ -126,6 +132,7 @@ class ViewGroup:
     cameras: Cameras
     gt_images: Optional[List[Path]]
     gt_masks: Optional[List[Path]] = None
+    gt_covisible: Optional[List[Path]] = None
     edi_images: Optional[List[Path]] = None
     blurry_images: Optional[List[Path]] = None
     note: str = ""
@@ -150,6 +157,12 @@ def _read_mask(path: Path) -> Tensor:
     """Mask file (white = dynamic) -> bool [H, W]."""
     with Image.open(path) as img:
         return torch.from_numpy(np.asarray(img.convert("L"), dtype=np.float32) / UINT8_MAX >= MASK_THRESHOLD)
+
+
+def _read_covisible(path: Path) -> Tensor:
+    """Co-visibility map (training latents that saw each pixel) -> bool [H, W], seen by at least one."""
+    with Image.open(path) as img:
+        return torch.from_numpy(np.asarray(img.convert("L")) > 0)
 
 
 def _file_list(meta: Mapping[str, Any], key: str, count: int) -> Optional[List[Path]]:
@@ -249,7 +262,20 @@ def novel_views(pipeline: Any, sim3: Optional[Sim3], sim3_note: str) -> ViewGrou
         note = f"evaluation cameras as given by the dataparser ({sim3_note or 'no ground-truth poses'})"
     gt = _file_list(meta, "gt_image_filenames", count) or [Path(f) for f in dataset.image_filenames]
     return ViewGroup(name=NOVEL_SPLIT, slug="novel", cameras=cameras, gt_images=gt,
-                     gt_masks=_file_list(meta, "gt_mask_filenames", count), note=note)  # fmt: skip
+                     gt_masks=_file_list(meta, "gt_mask_filenames", count),
+                     gt_covisible=_file_list(meta, "gt_covisible_filenames", count), note=note)  # fmt: skip
+
+
+def anchored_views(aligned: ViewGroup, inputs: ViewGroup, poses: TrainPoses, sim3: Optional[Sim3]) -> Optional[ViewGroup]:
+    """The novel views mapped by ``sim3``, each then placed relative to the training latent nearest
+    in time (``anchor_to_training``); None without ground-truth training poses or a Sim(3)."""
+    if sim3 is None or poses.gt is None or len(inputs.times) != len(poses.gt):
+        return None
+    c2w = anchor_to_training(to_homogeneous(aligned.cameras.camera_to_worlds), aligned.times, apply_sim3(poses.gt, sim3),
+                             poses.refined, inputs.times)
+    return replace(aligned, name=NOVEL_ANCHORED_SPLIT, slug="novel_anchored", cameras=with_poses(aligned.cameras, c2w),
+                   note="novel cameras as mapped, each moved by the residual of the training latent nearest in time "
+                        "(its refined pose against its mapped ground truth); no per-view pose fitting")
 
 
 def fit_group_poses(model: Any, group: ViewGroup, config: NovelPoseFitConfig) -> ViewGroup:
@@ -413,6 +439,10 @@ def evaluate_group(
                     values.update(region_psnr(pred, gt, gt_mask))
                     if mask is not None:
                         values["mask_iou"] = mask_iou(mask[..., 0].detach().cpu(), gt_mask, MASK_THRESHOLD)
+                if group.gt_covisible is not None:
+                    seen = _read_covisible(group.gt_covisible[i]).to(pred.device)
+                    if bool(seen.any()):
+                        values[COVISIBLE_PSNR_KEY] = psnr(pred, gt, mask=seen)
                 if mask is not None:
                     values["mask_mean"] = float(mask.detach().float().mean())
                 ours.update(values)
@@ -525,6 +555,10 @@ def evaluate_pipeline(
             unfitted = replace(aligned, name=NOVEL_UNFITTED_SPLIT, slug="novel_nofit")
             rows[NOVEL_UNFITTED_SPLIT], _ = evaluate_group(model, unfitted, lpips, None, max_grids)
             notes.append(f"{NOVEL_UNFITTED_SPLIT}: {aligned.note}; no per-view pose fitting.")
+        anchored = anchored_views(aligned, group, poses, sim3)
+        if anchored is not None:
+            rows[NOVEL_ANCHORED_SPLIT], _ = evaluate_group(model, anchored, lpips, None, max_grids)
+            notes.append(f"{NOVEL_ANCHORED_SPLIT}: {anchored.note}.")
     rows.update(pose_rows(poses))
     notes.append("Poses: ATE / RPE in the ground truth's units; ate_frac = ATE / largest "
                  "distance between two ground-truth camera centres (in metrics.json).")  # fmt: skip
@@ -594,5 +628,5 @@ def evaluate_run(
 
 __all__: List[str] = [
     "evaluate_run", "evaluate_pipeline", "input_views", "novel_views", "ViewGroup",
-    "INPUT_SPLIT", "NOVEL_SPLIT", "NOVEL_UNFITTED_SPLIT", "INITIAL_POSES_SPLIT", "REFINED_POSES_SPLIT", "IMAGE_METRIC_KEYS", "POSE_METRIC_KEYS",
+    "INPUT_SPLIT", "NOVEL_SPLIT", "NOVEL_UNFITTED_SPLIT", "NOVEL_ANCHORED_SPLIT", "INITIAL_POSES_SPLIT", "REFINED_POSES_SPLIT", "IMAGE_METRIC_KEYS", "POSE_METRIC_KEYS",
 ]  # fmt: skip

@@ -131,6 +131,28 @@ def align_cameras(cameras: Cameras, sim3: Optional[Sim3]) -> Cameras:
     return with_poses(cameras, apply_sim3(to_homogeneous(cameras.camera_to_worlds), sim3))
 
 
+def anchor_to_training(mapped: np.ndarray, times: np.ndarray, train_mapped: np.ndarray, train_refined: np.ndarray,
+                       train_times: np.ndarray) -> np.ndarray:
+    """Novel cameras placed relative to the training latent nearest in time, as a user places a
+    camera next to a training view: each mapped pose [V, 4, 4] gets the residual of that latent
+    (its refined pose against its Sim(3)-mapped ground truth): the orientation turned by the
+    residual rotation, the centre moved by the residual of the centre. No image is read.
+
+    Args:
+        mapped: [V, 4, 4] novel ground-truth poses moved by the training Sim(3); times: [V] normalised.
+        train_mapped: [N, 4, 4] the training latents' ground-truth poses moved by the same Sim(3).
+        train_refined: [N, 4, 4] their refined poses; train_times: [N] normalised.
+    """
+    mapped, train_mapped, train_refined = (to_homogeneous(p) for p in (mapped, train_mapped, train_refined))
+    nearest = np.abs(np.asarray(times)[:, None] - np.asarray(train_times)[None, :]).argmin(axis=1)
+    out = mapped.copy()
+    ref, gt = train_refined[nearest], train_mapped[nearest]
+    turn = ref[:, :3, :3] @ np.transpose(gt[:, :3, :3], (0, 2, 1))
+    out[:, :3, :3] = turn @ mapped[:, :3, :3]
+    out[:, :3, 3] = mapped[:, :3, 3] + ref[:, :3, 3] - gt[:, :3, 3]
+    return out
+
+
 @dataclass
 class TrainPoses:
     """Training-latent poses [N, 4, 4] float64 in the dataparser frame, and `scale`: the length of

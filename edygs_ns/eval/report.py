@@ -26,6 +26,7 @@ COLUMNS: Tuple[Tuple[str, str, str], ...] = (
     ("ssim", "SSIM↑", ".4f"),
     ("psnr_dynamic", "PSNR dyn↑", ".2f"),
     ("psnr_static", "PSNR static↑", ".2f"),
+    ("psnr_covisible", "PSNR seen↑", ".2f"),
     ("lpips_alex", "LPIPS(alex)↓", ".4f"),
     ("lpips_vgg", "LPIPS(vgg)↓", ".4f"),
     ("mask_iou", "mask IoU↑", ".4f"),

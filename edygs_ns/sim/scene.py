@@ -314,6 +314,34 @@ def _intersect_quads(quads: QuadStack, ids: np.ndarray, origin: np.ndarray,
     return t, a, b
 
 
+def nearest_hits(scene: Scene, origin: np.ndarray, dirs: np.ndarray, objects: Sequence[Tuple[Shape, ObjectState]] = ()
+                 ) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The nearest hit of rays from one origin among the room's quads and the posed shapes.
+
+    Args:
+        origin: [3] ray origin, world units.
+        dirs: [R, 3] unit ray directions.
+        objects: the moving shapes, each with its pose at this instant.
+
+    Returns:
+        t: [R] float64 distance to the hit (inf: none); ids: [R] quad index, len(scene.quads) + i
+        for objects[i], -1 for none; a, b: [R] texture coordinates on the hit quad.
+    """
+    stack = scene.quad_stack
+    ids = np.flatnonzero(stack.facing(origin))
+    t_all, a_all, b_all = _intersect_quads(stack, ids, origin, dirs.astype(np.float32))
+    nearest = np.argmin(t_all, axis=1)
+    rows = np.arange(dirs.shape[0])
+    best_t = t_all[rows, nearest].astype(np.float64)
+    best_id = np.where(np.isfinite(best_t), ids[nearest], -1)
+    first_object = len(scene.quads)
+    for i, (shape, pose) in enumerate(objects):
+        t_obj = shape.intersect(pose, origin, dirs)
+        best_id[t_obj < best_t] = first_object + i
+        best_t = np.minimum(best_t, t_obj)
+    return best_t, best_id, a_all[rows, nearest], b_all[rows, nearest]
+
+
 def render(scene: Scene, camera: PinholeCamera, c2w: np.ndarray, objects: Sequence[Tuple[Shape, ObjectState]] = (),
            supersample: int = 2) -> Tuple[np.ndarray, np.ndarray]:
     """Ray-cast one sharp view of the room and the posed moving shapes (nearest hit wins).
@@ -343,21 +371,8 @@ def render(scene: Scene, camera: PinholeCamera, c2w: np.ndarray, objects: Sequen
     dirs = dirs_img.reshape(-1, 3)
     origin = c2w[:3, 3]
     n_rays = dirs.shape[0]
-
-    stack = scene.quad_stack
-    ids = np.flatnonzero(stack.facing(origin))
-    t_all, a_all, b_all = _intersect_quads(stack, ids, origin, dirs.astype(np.float32))
-    nearest = np.argmin(t_all, axis=1)
-    rows = np.arange(n_rays)
-    best_t = t_all[rows, nearest].astype(np.float64)
-    best_a = a_all[rows, nearest]
-    best_b = b_all[rows, nearest]
-    best_id = np.where(np.isfinite(best_t), ids[nearest], -1)
+    best_t, best_id, best_a, best_b = nearest_hits(scene, origin, dirs, objects)
     first_object = len(scene.quads)  # best_id of objects[i] is first_object + i
-    for i, (shape, pose) in enumerate(objects):
-        t_obj = shape.intersect(pose, origin, dirs)
-        best_id[t_obj < best_t] = first_object + i
-        best_t = np.minimum(best_t, t_obj)
 
     color = np.full((n_rays, 3), BACKGROUND_VALUE, dtype=np.float32)
     on_quad = (best_id >= 0) & (best_id < first_object)

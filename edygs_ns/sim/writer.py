@@ -26,7 +26,9 @@ from edygs_ns.events.exposures import Exposure, write_exposures
 from edygs_ns.events.types import EventArray
 from edygs_ns.events.writers import write_events_h5
 from edygs_ns.sim.presets import MovingObject, PresetContext, ScenePreset, build_objects
+from edygs_ns.sim.covisibility import covisible_counts
 from edygs_ns.sim.scene import PinholeCamera, Scene, build_scene, render, to_grey
+from edygs_ns.sim.shapes import ObjectState, Shape
 from edygs_ns.sim.simulator import EventSimulator, SimulatorConfig
 from edygs_ns.sim.trajectory import US_PER_S, CameraPath, MotionKind, Timeline, make_camera_path, make_timeline
 from edygs_ns.io.images import UINT8_MAX
@@ -38,6 +40,8 @@ SEED_STREAMS = ("scene", "camera", "object")
 #: Ground-truth image folders under gt/: latent (training-path) views and novel views.
 LATENT_DIRS = {"image": "sharp", "mask": "mask", "instance": "instance"}
 NOVEL_DIRS = {"image": "novel", "mask": "novel_mask", "instance": "novel_instance"}
+#: gt/ folder of the novel views' co-visibility: per pixel, how many training latents saw it (8-bit, capped).
+NOVEL_COVISIBLE_DIR = "novel_covisible"
 
 
 @dataclass
@@ -151,8 +155,11 @@ class SynthWorld:
                 is the dynamic-object mask.
         """
         pose = self.c2w(t_us) if c2w is None else c2w
-        posed = [(obj.shape, obj.state(t_us / US_PER_S)) for obj in self.objects]
-        return render(self.scene, self.camera, pose, posed, self.supersample)
+        return render(self.scene, self.camera, pose, self.posed(t_us), self.supersample)
+
+    def posed(self, t_us: int) -> List[Tuple[Shape, ObjectState]]:
+        """The moving shapes with their poses at ``t_us``."""
+        return [(obj.shape, obj.state(t_us / US_PER_S)) for obj in self.objects]
 
 
 def build_world(config: SynthConfig) -> SynthWorld:
@@ -186,7 +193,7 @@ def _prepare_output(folder: Path, overwrite: bool) -> None:
                 shutil.rmtree(entry)
             elif entry.exists():
                 entry.unlink()
-    for sub in ["frames"] + [f"gt/{d}" for dirs in (LATENT_DIRS, NOVEL_DIRS) for d in dirs.values()]:
+    for sub in ["frames", f"gt/{NOVEL_COVISIBLE_DIR}"] + [f"gt/{d}" for dirs in (LATENT_DIRS, NOVEL_DIRS) for d in dirs.values()]:
         (folder / sub).mkdir(parents=True, exist_ok=True)
 
 
@@ -284,16 +291,22 @@ def _simulate_clip(world: SynthWorld, config: SynthConfig, folder: Path) -> Tupl
 
 
 def _render_novel(world: SynthWorld, config: SynthConfig, folder: Path) -> List[Dict[str, Any]]:
-    """Sharp views off the training path at the middle latent of every novel_stride-th frame."""
+    """Sharp views off the training path at the middle latent of every novel_stride-th frame, and
+    how many training latents saw each of their pixels (sim/covisibility.py)."""
     j = (config.k - 1) // 2
     records = []
+    latent_times = [int(t) for t in world.timeline.latents.ravel()]
+    train_c2w = [world.c2w(t) for t in latent_times]
+    train_objects = [world.posed(t) for t in latent_times]
     for p in range(0, config.n_frames, config.novel_stride):
         t = int(world.timeline.latents[p, j])
         pose = world.camera_path.novel_c2w(t / US_PER_S, config.novel_offset)
         rgb, instance = world.render(t, pose)
         name = f"{p:04d}_{j}.png"
         _save_gt(folder, NOVEL_DIRS, name, rgb, instance)
-        records.append(_gt_entry(world, NOVEL_DIRS, name, pose, t, p, j))
+        counts = covisible_counts(world.scene, world.camera, pose, world.posed(t), train_c2w, train_objects)
+        Image.fromarray(np.minimum(counts, UINT8_MAX).astype(np.uint8)).save(folder / "gt" / NOVEL_COVISIBLE_DIR / name)
+        records.append({**_gt_entry(world, NOVEL_DIRS, name, pose, t, p, j), "covisible_path": f"{NOVEL_COVISIBLE_DIR}/{name}"})
     return records
 
 

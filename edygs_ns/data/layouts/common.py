@@ -41,6 +41,7 @@ class ViewSet:
         times: [V] normalised time in [0, 1] on the same clock as the latent frames.
         image_paths: V sharp images.
         mask_paths: V motion masks (white = dynamic), or None.
+        covisible_paths: V 8-bit maps of how many training latents saw each pixel, or None.
     """
 
     intrinsics: Intrinsics
@@ -48,6 +49,7 @@ class ViewSet:
     times: np.ndarray
     image_paths: List[Path]
     mask_paths: Optional[List[Path]] = None
+    covisible_paths: Optional[List[Path]] = None
 
     def __len__(self) -> int:
         return len(self.image_paths)

@@ -163,6 +163,9 @@ def _read_gt(
         masks = [gt_root / f["mask_path"] for f in novel_frames] if all("mask_path" in f for f in novel_frames) else None
         if masks is not None:
             require_files(masks, source)
+        covisible = [gt_root / f["covisible_path"] for f in novel_frames] if all("covisible_path" in f for f in novel_frames) else None
+        if covisible is not None:
+            require_files(covisible, source)
         record.novel = ViewSet(
             intrinsics=intrinsics,
             camera_to_worlds=np.stack(
@@ -171,6 +174,7 @@ def _read_gt(
             times=np.array([to_time(f) for f in novel_frames], dtype=np.float64),
             image_paths=images,
             mask_paths=masks,
+            covisible_paths=covisible,
         )
     if record.pose_source not in GT_FRAME_POSE_SOURCES:
         _align_gt_to_estimate(record, source)
