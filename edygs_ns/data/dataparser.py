@@ -84,10 +84,8 @@ class EdygsDataParserConfig(DataParserConfig):
     scene_scale: float = 1.0
     """Half side of the scene box (in transformed units)."""
     initial_points: Literal["triangulated", "random"] = "triangulated"
-    """Initial points of a layout read directly (E2NeRF, EvDeblurNeRF: given poses, no point cloud):
-    "triangulated" from the EDI latents at the given poses (COLMAP features and matching, poses and
-    intrinsics fixed; once, cached under the scene's edygs_cache/), falling back to random points with a
-    one-line warning; "random": uniform in the scene box. Processed scenes bring their own points."""
+    """Initial points of an E2NeRF / EvDeblurNeRF scene read directly: its EDI latents triangulated at the
+    given poses (cached; random with a warning when that fails), or random in the scene box (docs/layouts.md)."""
     num_random_points: int = 20000
     """Points drawn uniformly in the scene box when the scene has no point cloud."""
     random_seed: int = 0
