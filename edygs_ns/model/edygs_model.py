@@ -74,8 +74,9 @@ class EdygsModelConfig(ModelConfig):
     """rigid tracking of each moving object's seeds at the switch (its base motion afterwards)"""
     camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="SO3xR3"))
     """per-latent-frame pose refinement (nerfstudio's camera optimiser)"""
-    rasterizer: Literal["auto", "torch", "gsplat"] = "auto"
-    """rasteriser backend: auto picks gsplat on CUDA and the torch reference on CPU"""
+    rasterizer: Literal["auto", "cpu", "torch", "gsplat"] = "auto"
+    """rasteriser backend: auto picks gsplat on CUDA and the compiled one on CPU
+    (docs/cpu_rasterizer.md); torch forces the torch reference"""
     sh_degree: int = 3
     """maximum spherical-harmonics degree"""
     sh_degree_interval: int = 1000
