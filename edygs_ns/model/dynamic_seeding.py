@@ -127,6 +127,13 @@ class DynamicSeedingConfig:
     """such a region (kept on presence alone) must stray this many of its radii instead of ``still_shift``"""
 
 
+def dilate(masks: Bool[Tensor, "... H W"], pixels: int) -> Bool[Tensor, "... H W"]:
+    """Masks grown by ``pixels`` in every direction (a square of side 2·pixels + 1)."""
+    shape = masks.shape
+    flat = masks.reshape(-1, 1, *shape[-2:]).float()
+    return (F.max_pool2d(flat, 2 * pixels + 1, stride=1, padding=pixels) > 0.5).reshape(shape)
+
+
 def box_filter(images: Float[Tensor, "N H W"], size: int) -> Float[Tensor, "N H W"]:
     """Mean over a size x size window (borders average the pixels inside the image)."""
     return F.avg_pool2d(images[:, None], size, stride=1, padding=size // 2, count_include_pad=False)[:, 0]

@@ -12,7 +12,6 @@ from dataclasses import dataclass, field
 from typing import Dict, List, Literal, Optional, Tuple, Type, Union
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 from torch.nn import Parameter
 
@@ -32,7 +31,14 @@ from edygs_ns.losses.regularizers import mask_consistency, mask_l1, motion_loss
 from edygs_ns.model.appearance import MAX_SH_DEGREE, sh_to_rgb
 from edygs_ns.model.deformation import DeformationConfig, DeformationField, RigidMotion
 from edygs_ns.model.exposure_cache import NO_EXPOSURE, ExposureCache
-from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig, evidence_track, fit_motion, motion_evidence, seed_gaussians
+from edygs_ns.model.dynamic_seeding import (
+    DynamicSeedingConfig,
+    dilate,
+    evidence_track,
+    fit_motion,
+    motion_evidence,
+    seed_gaussians,
+)
 from edygs_ns.model.motion_init import MotionInit, initialise_motion
 from edygs_ns.model.rigid_track import RigidTrackConfig
 from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES, init_gaussians, seed_tensors
@@ -366,10 +372,11 @@ class EdygsModel(SplatExportView):
         seeds = found.seed_tensors()
         cfg = self.config.seeding
         message = ""
+        times = self._latent_times()[0]
         for j, obj in enumerate(found.movers):
             message += f"\n  object {first_body + j}: {obj.summary()}"
             if self.config.rigid_track.as_base_motion:
-                self.rigid_motion.set(obj.track.centre, obj.reach, obj.size, self._latent_times()[0], obj.track.rotvecs,
+                self.rigid_motion.set(obj.track.centre, obj.reach, obj.size, times, obj.track.rotvecs,
                                       obj.track.translations, body=first_body + j)
         for obj in found.objects:
             if not obj.moved:
@@ -438,7 +445,7 @@ class EdygsModel(SplatExportView):
         evidence, threshold = motion_evidence(renders["residual"], cfg)
         known = (renders["mask"] > 0.5) | (self.static_masks.to(self.device).float() > 0.5)
         margin = max(1, int(round(cfg.refresh_margin * known.shape[-1])))
-        covered = F.max_pool2d(known[:, None].float(), 2 * margin + 1, stride=1, padding=margin)[:, 0] > 0.5
+        covered = dilate(known, margin)
         found = self._find_motion(renders, evidence, covered=covered, existing=existing, candidates=cfg.refresh_candidates,
                                   steady=False)
         before = self.num_points

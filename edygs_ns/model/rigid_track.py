@@ -32,7 +32,7 @@ from jaxtyping import Float
 from nerfstudio.cameras.lie_groups import exp_map_SO3xR3
 from torch import Tensor
 
-from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig, Seeds, seed_gaussians
+from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig, Seeds, dilate, seed_gaussians
 from edygs_ns.render.contract import RasterBackend
 
 
@@ -201,9 +201,6 @@ def track_rigid(
         cols = torch.nonzero(regions[i].any(dim=0)).squeeze(-1)
         return (max(int(rows[0]) - 2, 0), min(int(rows[-1]) + 3, height), max(int(cols[0]) - 2, 0), min(int(cols[-1]) + 3, width))
 
-    def grow(mask: Tensor, pixels: int) -> Tensor:
-        return torch.nn.functional.max_pool2d(mask.float()[None, None], 2 * pixels + 1, stride=1, padding=pixels)[0, 0] > 0.5
-
     with torch.no_grad():
         area = float((silhouette(ref, rotvecs[ref], units[ref]) > 0.5).sum())
     follow = dilation + int(round(config.follow_margin * (area / torch.pi) ** 0.5))
@@ -211,9 +208,9 @@ def track_rigid(
     def focus(i: int, rotvec: Tensor, unit: Tensor) -> None:
         """This object's evidence in latent i: near its silhouette at the start transform."""
         with torch.no_grad():
-            near = grow(silhouette(i, rotvec, unit) > 0.5, follow)
+            near = dilate(silhouette(i, rotvec, unit) > 0.5, follow)
         outlines[i] = evidence[i] * near
-        regions[i] = grow(outlines[i] > 0.5, dilation)
+        regions[i] = dilate(outlines[i] > 0.5, dilation)
 
     def render_loss(i: int, rotvec: Tensor, unit: Tensor, target: Tensor) -> Tensor:
         """Fit loss of latent i (RGB ``target`` [H, W, 3]) for the transform (rotvec, unit),
@@ -267,8 +264,8 @@ def track_rigid(
         for i in range(n):
             losses[i] = render_loss(i, rotvecs[i], units[i], latent(i)) if bool(regions[i].any()) else 0.0
             shape = silhouette(i, rotvecs[i], units[i], turn=False) > 0.5
-            footprints[i] = grow(shape, dilation)
-            claims[i] = grow(shape, follow)
+            footprints[i] = dilate(shape, dilation)
+            claims[i] = dilate(shape, follow)
             own = outlines[i] > 0.5
             if bool(own.any()):
                 iou[i] = (shape & own).sum() / (shape | own).sum()

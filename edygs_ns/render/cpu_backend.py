@@ -84,15 +84,8 @@ def rasterize_cpu(
     near_plane: float = DEFAULT_NEAR,
     far_plane: float = DEFAULT_FAR,
 ) -> RasterOutputs:
-    """Differentiable CPU rasteriser, compiled; same contract and rules as ``rasterize_torch``.
-
-    Args:
-        means: [N, 3] world positions. quats: [N, 4] wxyz. scales: [N, 3] activated, world units.
-        opacities: [N] activated. features: [N, D] or [C, N, D], any D.
-        viewmats: [C, 4, 4] world-to-camera (OpenCV). Ks: [C, 3, 3] pixel intrinsics.
-        width, height: image size in pixels.
-        backgrounds: [C, D] colour behind the Gaussians, or None for zeros.
-        near_plane, far_plane: depth range in world units.
+    """Differentiable CPU rasteriser, compiled; same rules as ``rasterize_torch``. Arguments and
+    their shapes and units: ``contract.RasterBackend``.
 
     Returns:
         RasterOutputs; gradients reach means, quats, scales, opacities, features and viewmats,
