@@ -50,22 +50,21 @@ class _CompiledRaster(torch.autograd.Function):
         ext = load_extension()
         width, height, tile = size
         inputs = [t.detach().contiguous() for t in (means2d, conics, opacities, features, depths)]
-        colour, depth_sum, alpha, offsets, ids, used, stops = ext.forward(
-            *inputs, radii.contiguous(), width, height, tile, RULES
-        )
+        # saved: tile offsets and lists, composited flags, per-pixel stops, depth order, packed records, rows
+        colour, depth_sum, alpha, *saved = ext.forward(*inputs, radii.contiguous(), width, height, tile, RULES)
         ctx.size = size
-        ctx.save_for_backward(*inputs, radii, offsets, ids, used, stops, colour, depth_sum, alpha)
+        ctx.save_for_backward(*inputs, radii, colour, depth_sum, alpha, *saved)
         return colour, depth_sum, alpha
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, *grad_outs: Optional[Tensor]):  # type: ignore[override]
-        *inputs, radii, offsets, ids, used, stops, colour, depth_sum, alpha = ctx.saved_tensors
-        outs = [colour, depth_sum, alpha]
+        tensors = ctx.saved_tensors
+        inputs, radii, outs, saved = tensors[:5], tensors[5], list(tensors[6:9]), list(tensors[9:])
         grads_in = [torch.zeros_like(o) if g is None else g.contiguous() for g, o in zip(grad_outs, outs)]
         width, height, tile = ctx.size
         grads = load_extension().backward(
-            *inputs, radii.contiguous(), width, height, tile, RULES, offsets, ids, used, stops, outs, grads_in,
+            *inputs, radii.contiguous(), width, height, tile, RULES, saved, outs, grads_in,
         )
         return (*grads, None, None)
 

@@ -4,11 +4,15 @@
 //     the tiles whose pixel centres its alpha >= ALPHA_MIN ellipse can reach;
 //   * per pixel, depth order: alpha = min(ALPHA_MAX, o exp(power)), skipped unless alpha > ALPHA_MIN;
 //     a pixel stops before the Gaussian that would take its transmittance to <= TRANSMITTANCE_MIN.
-// Channels composited: the D features, the depth and 1 (the accumulated alpha): F = D + 2.
-// Work is done per tile (OpenMP over tiles), one Gaussian at a time over the rows of pixels
-// its ellipse reaches; a row of the tile is one short loop the compiler vectorises.
+// Channels composited: the D features, the depth and 1 (the accumulated alpha).
+// The visible Gaussians are packed in depth order (per camera) and the tile lists index that
+// packed array, so a tile walks it front to back at increasing addresses. Work is done per tile
+// (OpenMP over tiles) in 64-byte vectors ("chunks": two rows of a tile in float32, one in float64),
+// one Gaussian at a time over the chunks its ellipse box reaches.
 // The backward walks each tile front to back again; the gradient of the Gaussians behind a
-// Gaussian is the composited total minus the running prefix (no division by 1 - alpha).
+// Gaussian is the composited total minus the running prefix (no division of the transmittance).
+// Per (Gaussian, tile) the gradient sums stay in vector registers over the chunks and are added
+// once into a per-thread, per-Gaussian buffer.
 
 #ifndef RASTER_KERNELS_ONLY
 #include <torch/extension.h>
@@ -22,19 +26,52 @@
 #include <numeric>
 #include <vector>
 
+#ifdef _OPENMP
+#include <omp.h>
+#endif
+
 namespace {
 
 struct Rules {
   double alpha_max, alpha_min, trans_min, cull_margin, min_opacity;
 };
 
-// exp for float, branch-free so the row loops vectorise: Cody-Waite reduction to |r| <= ln2 / 2
-// and a degree-7 Taylor polynomial (relative error ~1e-7); inputs below -80 give exp(-80).
-inline float exp_row(float x) {
-  x = x < -80.0f ? -80.0f : x;
-  const float n = std::nearbyint(x * 1.44269504088896341f);
-  const float r = (x - n * 0.693145751953125f) - n * 1.428606765330187e-06f;
-  float p = 1.0f / 5040.0f;
+// 64-byte vectors (GCC vector extensions): V holds L pixels, M is the matching lane mask
+// (all ones where true). One AVX-512 register here; two AVX2 registers on CPUs without it.
+template <typename T>
+struct Simd;
+template <>
+struct Simd<float> {
+  typedef float V __attribute__((vector_size(64)));
+  typedef int32_t M __attribute__((vector_size(64)));
+  typedef uint32_t Key;
+  static constexpr int L = 16;
+};
+template <>
+struct Simd<double> {
+  typedef double V __attribute__((vector_size(64)));
+  typedef int64_t M __attribute__((vector_size(64)));
+  typedef uint64_t Key;
+  static constexpr int L = 8;
+};
+
+template <typename T>
+using VecOf = typename Simd<T>::V;
+template <typename T>
+using MaskOf = typename Simd<T>::M;
+
+// exp for float, lane by lane without branches: Cody-Waite reduction to |r| <= ln2 / 2 and a
+// degree-7 Taylor polynomial (relative error ~1e-7); inputs below -80 give exp(-80). The
+// rounding to the nearest integer adds and subtracts 1.5 * 2^23 (exact for |x| < 2^22).
+inline Simd<float>::V exp_vec(Simd<float>::V x) {
+  typedef Simd<float>::V V;
+  typedef Simd<float>::M M;
+  const V floor_v = V{} - 80.0f;
+  x = x < floor_v ? floor_v : x;
+  const V shifter = V{} + 12582912.0f;
+  const V n = (x * 1.44269504088896341f + shifter) - shifter;
+  const V r = (x - n * 0.693145751953125f) - n * 1.428606765330187e-06f;
+  V p = V{} + 1.0f / 5040.0f;
   p = p * r + 1.0f / 720.0f;
   p = p * r + 1.0f / 120.0f;
   p = p * r + 1.0f / 24.0f;
@@ -42,32 +79,116 @@ inline float exp_row(float x) {
   p = p * r + 0.5f;
   p = p * r + 1.0f;
   p = p * r + 1.0f;
-  const int32_t bits = (static_cast<int32_t>(n) + 127) << 23;
-  float scale;
-  std::memcpy(&scale, &bits, sizeof(scale));
-  return p * scale;
+  const M bits = (__builtin_convertvector(n, M) + 127) << 23;
+  return p * reinterpret_cast<const V&>(bits);
 }
 
-inline double exp_row(double x) { return std::exp(x); }
+// float64 (the parity tests): the library exp, lane by lane.
+inline Simd<double>::V exp_vec(Simd<double>::V x) {
+  Simd<double>::V out;
+  for (int i = 0; i < Simd<double>::L; ++i) out[i] = std::exp(x[i]);
+  return out;
+}
+
+template <typename V>
+inline auto lane_sum(const V& v) {
+  auto s = v[0];
+  for (int i = 1; i < static_cast<int>(sizeof(V) / sizeof(s)); ++i) s += v[i];
+  return s;
+}
+
+template <typename M>
+inline bool any_lane(const M& m) {
+  const uint64_t* w = reinterpret_cast<const uint64_t*>(&m);
+  uint64_t acc = 0;
+  for (int i = 0; i < 8; ++i) acc |= w[i];
+  return acc != 0;
+}
+
+// Horizontal sums of many vectors at once: a tree of two-input shuffles ("fold") halves the lanes
+// of each vector while pairing vectors up, so K vectors of L lanes take about K fold steps instead
+// of K separate horizontal sums. fold<H>(a, b): lane q takes the sum of lanes s and s + H of a (or
+// of b, for the upper half of each 2H-lane block), s = its block's start + q % H.
+template <typename scalar_t>
+MaskOf<scalar_t> fold_index(int h, bool upper) {
+  MaskOf<scalar_t> ix;
+  constexpr int L = Simd<scalar_t>::L;
+  for (int q = 0; q < L; ++q) {
+    const int blk = q / (2 * h), within = q % (2 * h);
+    ix[q] = (within < h ? 0 : L) + blk * 2 * h + within % h + (upper ? h : 0);
+  }
+  return ix;
+}
+template <typename scalar_t, int H>
+const MaskOf<scalar_t> kFoldLo = fold_index<scalar_t>(H, false);
+template <typename scalar_t, int H>
+const MaskOf<scalar_t> kFoldHi = fold_index<scalar_t>(H, true);
+
+template <typename scalar_t, int H>
+inline VecOf<scalar_t> fold(const VecOf<scalar_t>& a, const VecOf<scalar_t>& b) {
+  return __builtin_shuffle(a, b, kFoldLo<scalar_t, H>) + __builtin_shuffle(a, b, kFoldHi<scalar_t, H>);
+}
+
+// L vectors -> one vector of their L totals (in the lane order of fold_owner).
+template <typename scalar_t>
+inline VecOf<scalar_t> fold_all(VecOf<scalar_t>* w) {
+  constexpr int L = Simd<scalar_t>::L;
+  if constexpr (L == 16) {
+    for (int i = 0; i < 8; ++i) w[i] = fold<scalar_t, 8>(w[2 * i], w[2 * i + 1]);
+  }
+  for (int i = 0; i < 4; ++i) w[i] = fold<scalar_t, 4>(w[2 * i], w[2 * i + 1]);
+  for (int i = 0; i < 2; ++i) w[i] = fold<scalar_t, 2>(w[2 * i], w[2 * i + 1]);
+  return fold<scalar_t, 1>(w[0], w[1]);
+}
+
+// Which input vector's total lands in each lane of fold_all (the same folds, on owner labels;
+// not through kFold*, whose initialisation order relative to this one is unspecified).
+template <typename scalar_t>
+std::vector<int> fold_owner() {
+  constexpr int L = Simd<scalar_t>::L;
+  std::vector<std::vector<int>> own(L, std::vector<int>(L));
+  for (int i = 0; i < L; ++i) std::fill(own[i].begin(), own[i].end(), i);
+  for (int h = L / 2, count = L; h >= 1; h /= 2, count /= 2) {
+    const MaskOf<scalar_t> ix = fold_index<scalar_t>(h, false);
+    for (int i = 0; i < count / 2; ++i) {
+      std::vector<int> merged(L);
+      for (int q = 0; q < L; ++q) merged[q] = ix[q] < L ? own[2 * i][ix[q]] : own[2 * i + 1][ix[q] - L];
+      own[i] = merged;
+    }
+  }
+  return own[0];
+}
+template <typename scalar_t>
+const std::vector<int> kFoldOwner = fold_owner<scalar_t>();
+
+// totals[k] = sum of the lanes of v[k], k < K.
+template <typename scalar_t>
+inline void lane_totals(const VecOf<scalar_t>* v, int64_t K, scalar_t* totals) {
+  constexpr int L = Simd<scalar_t>::L;
+  const int* owner = kFoldOwner<scalar_t>.data();
+  for (int64_t g0 = 0; g0 < K; g0 += L) {
+    VecOf<scalar_t> w[L];
+    for (int i = 0; i < L; ++i) w[i] = g0 + i < K ? v[g0 + i] : VecOf<scalar_t>{};
+    const VecOf<scalar_t> r = fold_all<scalar_t>(w);
+    for (int q = 0; q < L; ++q)
+      if (g0 + owner[q] < K) totals[g0 + owner[q]] = r[q];
+  }
+}
 
 // The Gaussian's exponent at offset (dx, dy) = pixel centre - mean; one expression for forward and
 // backward so both passes see the same alphas bit for bit.
-template <typename scalar_t>
-inline scalar_t power_at(scalar_t dx, scalar_t dy, scalar_t a, scalar_t b, scalar_t c) {
-  return scalar_t(-0.5) * (a * dx * dx + c * dy * dy) - b * dx * dy;
+template <typename V, typename S>
+inline V power_at(const V& dx, const V& dy, S a, S b, S c) {
+  return S(-0.5) * (a * dx * dx + c * dy * dy) - b * dx * dy;
 }
 
-// Per (camera, Gaussian) record, scalar_t: mean x, y, conic a, b, c, opacity, D features, depth.
+// Packed record of a visible (camera, Gaussian), scalar_t: mean x, y, conic a, b, c, opacity,
+// D features, depth (the depth is composited as feature D).
 constexpr int kHead = 6;
 
-template <typename scalar_t>
-struct Scene {
-  int64_t n_cams, n, n_feat;  // n_feat = D
-  int width, height, tile, tiles_x, tiles_y;
-  std::vector<scalar_t> records;  // [C * N, kHead + D + 1]
-  std::vector<int32_t> rows;      // [C * N, 2] first / last pixel row the ellipse box reaches
-  std::vector<int32_t> tiles;     // [C * N, 4] tile range x0, x1, y0, y1 (empty when culled)
-  int64_t stride() const { return kHead + n_feat + 1; }
+// Per (camera, Gaussian) geometry before sorting: tile range and pixel-row range of the box.
+struct Footprint {
+  int32_t x0, x1, y0, y1, row0, row1;
 };
 
 // Raw inputs: means2d [C, N, 2], conics [C, N, 3], opacities [N], features [N, D] or [C, N, D],
@@ -81,55 +202,38 @@ struct Inputs {
   int width, height;
 };
 
-// Pack the per-Gaussian inputs and compute each Gaussian's tile range and pixel-row range.
+// The visible Gaussians in depth order: records [M, kHead + D + 1], rows [M, 2] (first / last
+// pixel row of the box), order [M] (c * N + n of each record); camera c owns records
+// [cam_start[c], cam_start[c + 1]). Tile lists (offsets [C * T + 1], ids [I]) index the records.
 template <typename scalar_t>
-Scene<scalar_t> pack(const Inputs<scalar_t>& in, int tile, const Rules& rules, int threads) {
-  Scene<scalar_t> s;
-  s.n_cams = in.n_cams;
-  s.n = in.n;
-  s.n_feat = in.n_feat;
-  s.width = in.width;
-  s.height = in.height;
-  s.tile = tile;
-  s.tiles_x = (in.width + tile - 1) / tile;
-  s.tiles_y = (in.height + tile - 1) / tile;
-  const int64_t total = s.n_cams * s.n, stride = s.stride(), d = s.n_feat;
-  s.records.resize(total * stride);
-  s.rows.resize(total * 2);
-  s.tiles.resize(total * 4);
-  const scalar_t* m2 = in.means2d;
-  const scalar_t* co = in.conics;
-  const scalar_t* op = in.opacities;
-  const scalar_t* fe = in.features;
-  const scalar_t* de = in.depths;
-  const int32_t* ra = in.radii;
-  const bool per_camera = in.per_camera;
+struct Packed {
+  int64_t n_feat;
+  int width, height, tiles_x, tiles_y;
+  const scalar_t* records;
+  const int32_t* rows;
+  int64_t stride() const { return kHead + n_feat + 1; }
+};
+
+// Tile and row range of every (camera, Gaussian); x1 == x0 when it reaches no tile.
+template <typename scalar_t>
+void footprints(const Inputs<scalar_t>& in, int tile, const Rules& rules, int threads, Footprint* out) {
+  const int64_t total = in.n_cams * in.n;
+  const int tiles_x = (in.width + tile - 1) / tile, tiles_y = (in.height + tile - 1) / tile;
   const scalar_t ts = static_cast<scalar_t>(tile);
   const scalar_t limit = static_cast<scalar_t>(std::max(in.width, in.height) + tile);
 #pragma omp parallel for schedule(static) num_threads(threads)
   for (int64_t i = 0; i < total; ++i) {
-    const int64_t g = i % s.n;
-    scalar_t* rec = &s.records[i * stride];
-    rec[0] = m2[2 * i];
-    rec[1] = m2[2 * i + 1];
-    rec[2] = co[3 * i];
-    rec[3] = co[3 * i + 1];
-    rec[4] = co[3 * i + 2];
-    rec[5] = op[g];
-    const scalar_t* f = fe + (per_camera ? i : g) * d;
-    for (int64_t k = 0; k < d; ++k) rec[kHead + k] = f[k];
-    rec[kHead + d] = de[i];
-    int32_t* tr = &s.tiles[4 * i];
-    tr[0] = tr[1] = tr[2] = tr[3] = 0;
-    if (ra[i] <= 0) continue;
+    Footprint& fp = out[i];
+    fp = Footprint{0, 0, 0, 0, 0, 0};
+    if (in.radii[i] <= 0) continue;
     // the 3-sigma square, in the input precision (the rule: same expressions as the reference)
-    const scalar_t cx = rec[0], cy = rec[1], rad = static_cast<scalar_t>(ra[i]);
+    const scalar_t cx = in.means2d[2 * i], cy = in.means2d[2 * i + 1], rad = static_cast<scalar_t>(in.radii[i]);
     auto clampi = [](scalar_t v, scalar_t hi) { return std::min(std::max(v, scalar_t(0)), hi); };
-    scalar_t x0 = clampi(std::floor((cx - rad) / ts), s.tiles_x), x1 = clampi(std::ceil((cx + rad) / ts), s.tiles_x);
-    scalar_t y0 = clampi(std::floor((cy - rad) / ts), s.tiles_y), y1 = clampi(std::ceil((cy + rad) / ts), s.tiles_y);
+    scalar_t x0 = clampi(std::floor((cx - rad) / ts), tiles_x), x1 = clampi(std::ceil((cx + rad) / ts), tiles_x);
+    scalar_t y0 = clampi(std::floor((cy - rad) / ts), tiles_y), y1 = clampi(std::ceil((cy + rad) / ts), tiles_y);
     // the box of pixel centres where alpha can reach ALPHA_MIN (with a margin: only drops zeros)
-    const scalar_t a = rec[2], b = rec[3], c = rec[4];
-    const scalar_t o = std::max(rec[5], static_cast<scalar_t>(rules.min_opacity));
+    const scalar_t a = in.conics[3 * i], b = in.conics[3 * i + 1], c = in.conics[3 * i + 2];
+    const scalar_t o = std::max(in.opacities[i % in.n], static_cast<scalar_t>(rules.min_opacity));
     const scalar_t level = std::log(o / static_cast<scalar_t>(rules.alpha_min));
     const scalar_t r2 = 2 * std::max(level + static_cast<scalar_t>(rules.cull_margin), scalar_t(0));
     const scalar_t reach = r2 / (a * c - b * b);
@@ -142,321 +246,380 @@ Scene<scalar_t> pack(const Inputs<scalar_t>& in, int tile, const Rules& rules, i
     y0 = std::max(y0, std::floor(fy / ts));
     x1 = std::max(std::min(x1, std::floor(lx / ts) + 1), x0);
     y1 = std::max(std::min(y1, std::floor(ly / ts) + 1), y0);
-    tr[0] = static_cast<int32_t>(x0);
-    tr[1] = static_cast<int32_t>(x1);
-    tr[2] = static_cast<int32_t>(y0);
-    tr[3] = static_cast<int32_t>(y1);
-    s.rows[2 * i] = static_cast<int32_t>(fy);
-    s.rows[2 * i + 1] = static_cast<int32_t>(ly);
+    if (!(x1 > x0) || !(y1 > y0)) continue;
+    fp = Footprint{static_cast<int32_t>(x0), static_cast<int32_t>(x1), static_cast<int32_t>(y0),
+                   static_cast<int32_t>(y1), static_cast<int32_t>(fy), static_cast<int32_t>(ly)};
   }
-  return s;
 }
 
-// Tile lists: offsets [C * T + 1] into ids [M] (c * N + n), each tile's list in depth order.
+// Order-preserving unsigned key of a float (ascending keys = ascending values; -0 < +0).
 template <typename scalar_t>
-void bin(const Scene<scalar_t>& s, std::vector<int64_t>& offsets, std::vector<int32_t>& ids, int threads) {
-  const int64_t n_tiles = static_cast<int64_t>(s.tiles_x) * s.tiles_y, stride = s.stride();
-  offsets.assign(s.n_cams * n_tiles + 1, 0);
-  std::vector<std::vector<int32_t>> per_cam(s.n_cams);
-#pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
-  for (int64_t c = 0; c < s.n_cams; ++c) {
-    std::vector<int32_t>& ord = per_cam[c];
-    for (int32_t g = 0; g < s.n; ++g) {
-      const int32_t* tr = &s.tiles[4 * (c * s.n + g)];
-      if (tr[1] > tr[0] && tr[3] > tr[2]) ord.push_back(g);
+inline typename Simd<scalar_t>::Key sort_key(scalar_t v) {
+  typedef typename Simd<scalar_t>::Key Key;
+  Key k;
+  std::memcpy(&k, &v, sizeof(k));
+  const Key sign = Key(1) << (8 * sizeof(Key) - 1);
+  return (k & sign) ? ~k : (k | sign);
+}
+
+// Stable LSD radix sort of idx by key (8-bit digits; digits every key shares are skipped).
+template <typename Key>
+void radix_sort(std::vector<Key>& key, std::vector<int32_t>& idx) {
+  const size_t n = key.size();
+  std::vector<Key> key2(n);
+  std::vector<int32_t> idx2(n);
+  for (size_t shift = 0; shift < 8 * sizeof(Key); shift += 8) {
+    size_t count[257] = {0};
+    for (size_t i = 0; i < n; ++i) ++count[((key[i] >> shift) & 0xff) + 1];
+    if (n == 0 || count[((key[0] >> shift) & 0xff) + 1] == n) continue;  // one digit value: a no-op pass
+    for (int d = 0; d < 256; ++d) count[d + 1] += count[d];
+    for (size_t i = 0; i < n; ++i) {
+      const size_t at = count[(key[i] >> shift) & 0xff]++;
+      key2[at] = key[i];
+      idx2[at] = idx[i];
     }
-    const scalar_t* depth = &s.records[c * s.n * stride + kHead + s.n_feat];
-    std::sort(ord.begin(), ord.end(), [depth, stride](int32_t i, int32_t j) {
-      const scalar_t di = depth[i * stride], dj = depth[j * stride];
-      return di < dj || (di == dj && i < j);
-    });
+    key.swap(key2);
+    idx.swap(idx2);
+  }
+}
+
+// Sort the visible Gaussians of each camera by depth (ties by index), pack their records and rows
+// in that order, and build the tile lists. order / records / rows are resized to the visible count.
+template <typename scalar_t>
+void pack_and_bin(const Inputs<scalar_t>& in, int tile, const Rules& rules, int threads, std::vector<int32_t>& order,
+                  std::vector<scalar_t>& records, std::vector<int32_t>& rows, std::vector<int64_t>& offsets,
+                  std::vector<int32_t>& ids) {
+  typedef typename Simd<scalar_t>::Key Key;
+  const int64_t total = in.n_cams * in.n, d = in.n_feat, stride = kHead + d + 1;
+  const int tiles_x = (in.width + tile - 1) / tile, tiles_y = (in.height + tile - 1) / tile;
+  const int64_t n_tiles = static_cast<int64_t>(tiles_x) * tiles_y;
+  std::unique_ptr<Footprint[]> fps(new Footprint[std::max<int64_t>(total, 1)]);
+  footprints(in, tile, rules, threads, fps.get());
+  // per camera: visible indices sorted by depth
+  std::vector<std::vector<int32_t>> per_cam(in.n_cams);
+#pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
+  for (int64_t c = 0; c < in.n_cams; ++c) {
+    std::vector<Key> key;
+    std::vector<int32_t>& idx = per_cam[c];
+    for (int32_t g = 0; g < in.n; ++g) {
+      const Footprint& fp = fps[c * in.n + g];
+      if (fp.x1 > fp.x0) {
+        key.push_back(sort_key(in.depths[c * in.n + g]));
+        idx.push_back(static_cast<int32_t>(c * in.n + g));
+      }
+    }
+    radix_sort(key, idx);
+  }
+  std::vector<int64_t> cam_start(in.n_cams + 1, 0);
+  for (int64_t c = 0; c < in.n_cams; ++c) cam_start[c + 1] = cam_start[c] + static_cast<int64_t>(per_cam[c].size());
+  const int64_t m = cam_start[in.n_cams];
+  order.resize(m);
+  for (int64_t c = 0; c < in.n_cams; ++c) std::copy(per_cam[c].begin(), per_cam[c].end(), order.begin() + cam_start[c]);
+  records.resize(std::max<int64_t>(m * stride, 1));
+  rows.resize(std::max<int64_t>(2 * m, 1));
+  std::vector<Footprint> sorted(m);
+#pragma omp parallel for schedule(static) num_threads(threads)
+  for (int64_t r = 0; r < m; ++r) {
+    const int64_t i = order[r], g = i % in.n;
+    scalar_t* rec = &records[r * stride];
+    rec[0] = in.means2d[2 * i];
+    rec[1] = in.means2d[2 * i + 1];
+    rec[2] = in.conics[3 * i];
+    rec[3] = in.conics[3 * i + 1];
+    rec[4] = in.conics[3 * i + 2];
+    rec[5] = in.opacities[g];
+    const scalar_t* f = in.features + (in.per_camera ? i : g) * d;
+    for (int64_t k = 0; k < d; ++k) rec[kHead + k] = f[k];
+    rec[kHead + d] = in.depths[i];
+    sorted[r] = fps[i];
+    rows[2 * r] = fps[i].row0;
+    rows[2 * r + 1] = fps[i].row1;
+  }
+  offsets.assign(in.n_cams * n_tiles + 1, 0);
+  for (int64_t c = 0; c < in.n_cams; ++c) {
     int64_t* count = &offsets[c * n_tiles + 1];
-    for (int32_t g : ord) {
-      const int32_t* tr = &s.tiles[4 * (c * s.n + g)];
-      for (int32_t y = tr[2]; y < tr[3]; ++y)
-        for (int32_t x = tr[0]; x < tr[1]; ++x) ++count[y * s.tiles_x + x];
+    for (int64_t r = cam_start[c]; r < cam_start[c + 1]; ++r) {
+      const Footprint& fp = sorted[r];
+      for (int32_t y = fp.y0; y < fp.y1; ++y)
+        for (int32_t x = fp.x0; x < fp.x1; ++x) ++count[y * tiles_x + x];
     }
   }
   std::partial_sum(offsets.begin(), offsets.end(), offsets.begin());
   ids.resize(offsets.back());
-#pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
-  for (int64_t c = 0; c < s.n_cams; ++c) {
-    std::vector<int64_t> fill(offsets.begin() + c * n_tiles, offsets.begin() + (c + 1) * n_tiles);
-    for (int32_t g : per_cam[c]) {
-      const int32_t* tr = &s.tiles[4 * (c * s.n + g)];
-      const int32_t flat = static_cast<int32_t>(c * s.n + g);
-      for (int32_t y = tr[2]; y < tr[3]; ++y)
-        for (int32_t x = tr[0]; x < tr[1]; ++x) ids[fill[y * s.tiles_x + x]++] = flat;
+  std::vector<int64_t> fill(offsets.begin(), offsets.end() - 1);
+  for (int64_t c = 0; c < in.n_cams; ++c) {
+    int64_t* at = &fill[c * n_tiles];
+    for (int64_t r = cam_start[c]; r < cam_start[c + 1]; ++r) {
+      const Footprint& fp = sorted[r];
+      for (int32_t y = fp.y0; y < fp.y1; ++y)
+        for (int32_t x = fp.x0; x < fp.x1; ++x) ids[at[y * tiles_x + x]++] = static_cast<int32_t>(r);
     }
   }
 }
 
 // Number of composited feature channels (D features + depth) known at compile time: NC > 0 fuses
-// the channel loops into the pixel loop (the common D = 3, 4); NC = 0 reads it at run time.
+// the channel loops (the common D = 3, 4); NC = 0 reads it at run time.
 template <int NC>
 inline int64_t channels(int64_t runtime) { return NC > 0 ? NC : runtime; }
 
-// Forward of one tile. acc: [F, P] (features, depth, alpha); stop: [P] list index of the Gaussian
-// that ended the pixel (excluded), else the list length; used: [count] 1 where the Gaussian was
-// composited into some pixel of the tile (the backward skips the others). A finished pixel (or one outside the
-// image) has transmittance 0, which no later Gaussian passes. A Gaussian is evaluated on the rows
-// of the tile its ellipse box reaches: pixels [lo, hi) of the row-major tile, one flat loop the
-// compiler vectorises.
+// Chunks [c0, c1] of the tile (rows ty * TS .. + TS) that the record's box rows reach.
+template <int TS, int RPC>
+inline void chunk_range(const int32_t* rows, int yb, int& c0, int& c1) {
+  c0 = std::max(rows[0] - yb, 0) / RPC;
+  c1 = std::min(rows[1] - yb, TS - 1) / RPC;
+}
+
+// Forward of one tile, in chunks of L pixels (RPC = L / TS rows). acc: [nc + 1][NCH] vectors
+// (features, depth, alpha); stop: [P] list index of the Gaussian that ended the pixel (excluded),
+// else the list length; used: [count] 1 where the Gaussian was composited into some pixel of the
+// tile (the backward skips the others). A finished pixel (or one outside the image) has
+// transmittance 0, which no later Gaussian passes.
 template <typename scalar_t, int TS, int NC>
-void composite_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count, int tx, int ty,
-                    const Rules& rules, scalar_t* acc, int32_t* stop, uint8_t* used) {
-  constexpr int P = TS * TS;
+void composite_tile(const Packed<scalar_t>& s, const int32_t* list, int32_t count, int tx, int ty, const Rules& rules,
+                    VecOf<scalar_t>* acc, int32_t* stop_out, uint8_t* used) {
+  typedef VecOf<scalar_t> V;
+  typedef MaskOf<scalar_t> M;
+  constexpr int L = Simd<scalar_t>::L, P = TS * TS, NCH = P / L, RPC = L / TS;
+  static_assert(P % L == 0 && L % TS == 0, "tile and vector sizes");
   constexpr int kCheckEvery = 8;  // Gaussians between tests for a finished tile
   const int64_t stride = s.stride(), nc = channels<NC>(s.n_feat + 1);
   const int xb = tx * TS, yb = ty * TS;
-  alignas(64) scalar_t pxs[P], pys[P], w[P], trans[P];
-  for (int p = 0; p < P; ++p) {
-    pxs[p] = static_cast<scalar_t>(xb + p % TS) + scalar_t(0.5);
-    pys[p] = static_cast<scalar_t>(yb + p / TS) + scalar_t(0.5);
-    trans[p] = (xb + p % TS >= s.width || yb + p / TS >= s.height) ? scalar_t(0) : scalar_t(1);
-    stop[p] = count;
+  V px[NCH], py[NCH], trans[NCH];
+  M stop[NCH];
+  for (int q = 0; q < NCH; ++q) {
+    for (int l = 0; l < L; ++l) {
+      const int p = q * L + l, x = xb + p % TS, y = yb + p / TS;
+      px[q][l] = static_cast<scalar_t>(x) + scalar_t(0.5);
+      py[q][l] = static_cast<scalar_t>(y) + scalar_t(0.5);
+      const bool outside = x >= s.width || y >= s.height;  // never composited; no backward work
+      trans[q][l] = outside ? scalar_t(0) : scalar_t(1);
+      stop[q][l] = outside ? 0 : count;
+    }
   }
-  std::fill(acc, acc + (nc + 1) * P, scalar_t(0));
-  scalar_t* acc_alpha = acc + nc * P;
+  for (int64_t i = 0; i < (nc + 1) * NCH; ++i) acc[i] = V{};
+  V* acc_alpha = acc + nc * NCH;
   const scalar_t amax = rules.alpha_max, amin = rules.alpha_min, tmin = rules.trans_min;
+  const V zero{}, one = V{} + scalar_t(1), v_amax = V{} + amax;
   for (int32_t k = 0; k < count; ++k) {
     if (k % kCheckEvery == 0 && k > 0) {
-      scalar_t live = 0;
-#pragma omp simd reduction(max : live)
-      for (int p = 0; p < P; ++p) live = live > trans[p] ? live : trans[p];
-      if (live == 0) break;
+      M live{};
+      for (int q = 0; q < NCH; ++q) live |= trans[q] > zero;
+      if (!any_lane(live)) break;
     }
     const int32_t id = list[k];
     const scalar_t* rec = &s.records[id * stride];
-    const int lo = std::max(s.rows[2 * id] - yb, 0) * TS, hi = (std::min(s.rows[2 * id + 1] - yb, TS - 1) + 1) * TS;
+    int c0, c1;
+    chunk_range<TS, RPC>(&s.rows[2 * id], yb, c0, c1);
     const scalar_t mx = rec[0], my = rec[1], a = rec[2], b = rec[3], c = rec[4], o = rec[5];
     const scalar_t* f = rec + kHead;
-    int any = 0;
-#pragma omp simd reduction(| : any)
-    for (int p = lo; p < hi; ++p) {
-      scalar_t alpha = o * exp_row(power_at(pxs[p] - mx, pys[p] - my, a, b, c));
-      alpha = alpha < amax ? alpha : amax;
-      const scalar_t t = trans[p];
-      const scalar_t next = t * (scalar_t(1) - alpha);
-      const bool ok = (t > 0) & (alpha > amin);
-      const bool fin = ok & (next <= tmin);
-      const bool inc = ok & !fin;
-      const scalar_t wi = inc ? alpha * t : scalar_t(0);
-      trans[p] = fin ? scalar_t(0) : (inc ? next : t);
-      stop[p] = fin ? k : stop[p];
-      any |= inc ? 1 : 0;
-      acc_alpha[p] += wi;
-      if constexpr (NC > 0) {
-        for (int ch = 0; ch < NC; ++ch) acc[ch * P + p] += wi * f[ch];
-      } else {
-        w[p] = wi;
-      }
+    M any{};
+    for (int q = c0; q <= c1; ++q) {
+      V alpha = o * exp_vec(power_at(px[q] - mx, py[q] - my, a, b, c));
+      alpha = alpha < v_amax ? alpha : v_amax;
+      const V t = trans[q];
+      const V next = t * (one - alpha);
+      const M ok = (t > zero) & (alpha > amin);
+      const M fin = ok & (next <= tmin);
+      const M inc = ok & ~fin;
+      const V wi = inc ? alpha * t : zero;
+      trans[q] = fin ? zero : (inc ? next : t);
+      stop[q] = fin ? (M{} + k) : stop[q];
+      any |= inc;
+      acc_alpha[q] += wi;
+      for (int64_t ch = 0; ch < nc; ++ch) acc[ch * NCH + q] += wi * f[ch];
     }
-    used[k] = any ? 1 : 0;
-    if constexpr (NC == 0) {
-      for (int64_t ch = 0; ch < nc; ++ch) {
-        const scalar_t fc = f[ch];
-        scalar_t* o_ch = acc + ch * P;
-#pragma omp simd
-        for (int p = lo; p < hi; ++p) o_ch[p] += w[p] * fc;
-      }
-    }
+    used[k] = any_lane(any) ? 1 : 0;
   }
+  for (int q = 0; q < NCH; ++q)
+    for (int l = 0; l < L; ++l) stop_out[q * L + l] = static_cast<int32_t>(stop[q][l]);
 }
 
-// Backward of one tile: per-intersection gradients [count, K] with K = 6 + D + 1:
-// d/d mean x, y, d/d conic a, b, c, d/d log(opacity), d/d features, d/d depth.
-// g: [F, P] dL/d(acc); total: [P] g . acc (the gradient-weighted composite of every Gaussian).
+// Backward of one tile: per (Gaussian, tile) the pixel sums of d/d mean x, y, d/d conic a, b, c,
+// d/d log(opacity), d/d features, d/d depth (K = kHead + nc values) added into per[id * K].
+// g: [nc + 1][NCH] dL/d(acc); total: [NCH] g . acc (the gradient-weighted composite of every
+// Gaussian); stop: [P]; sf: [nc] vectors of scratch (the generic path's feature sums).
 template <typename scalar_t, int TS, int NC>
-void backward_tile(const Scene<scalar_t>& s, const int32_t* list, int32_t count, int tx, int ty,
-                   const Rules& rules, const scalar_t* g, const scalar_t* total, const int32_t* stop,
-                   const uint8_t* used, scalar_t* grads) {
-  constexpr int P = TS * TS;
+void backward_tile(const Packed<scalar_t>& s, const int32_t* list, int32_t count, int tx, int ty, const Rules& rules,
+                   const VecOf<scalar_t>* g, const VecOf<scalar_t>* total, const int32_t* stop_in, const uint8_t* used,
+                   VecOf<scalar_t>* sf_scratch, scalar_t* per) {
+  typedef VecOf<scalar_t> V;
+  typedef MaskOf<scalar_t> M;
+  constexpr int L = Simd<scalar_t>::L, P = TS * TS, NCH = P / L, RPC = L / TS;
   const int64_t stride = s.stride(), nc = channels<NC>(s.n_feat + 1), n_k = kHead + nc;
   const int xb = tx * TS, yb = ty * TS;
-  alignas(64) scalar_t pxs[P], pys[P], w[P], h[P], trans[P], prefix[P];
+  V px[NCH], py[NCH], trans[NCH], prefix[NCH];
+  M stop[NCH];
   int32_t last = 0;
-  for (int p = 0; p < P; ++p) {
-    pxs[p] = static_cast<scalar_t>(xb + p % TS) + scalar_t(0.5);
-    pys[p] = static_cast<scalar_t>(yb + p / TS) + scalar_t(0.5);
-    trans[p] = 1;
-    prefix[p] = 0;
-    last = std::max(last, stop[p]);
+  for (int q = 0; q < NCH; ++q) {
+    for (int l = 0; l < L; ++l) {
+      const int p = q * L + l;
+      px[q][l] = static_cast<scalar_t>(xb + p % TS) + scalar_t(0.5);
+      py[q][l] = static_cast<scalar_t>(yb + p / TS) + scalar_t(0.5);
+      stop[q][l] = stop_in[p];
+      last = std::max(last, stop_in[p]);
+    }
+    trans[q] = V{} + scalar_t(1);
+    prefix[q] = V{};
   }
   const scalar_t amax = rules.alpha_max, amin = rules.alpha_min;
-  const scalar_t* g_alpha_ch = g + nc * P;  // the alpha channel's feature is 1
+  const V zero{}, one = V{} + scalar_t(1), v_amax = V{} + amax;
+  const V* g_alpha_ch = g + nc * NCH;  // the alpha channel's feature is 1
+  V sf_fixed[NC > 0 ? NC : 1];
+  V* sf = NC > 0 ? sf_fixed : sf_scratch;
   for (int32_t k = 0; k < std::min(last, count); ++k) {
-    if (!used[k]) {  // composited nowhere in this tile: its gradients here are 0
-      std::fill(grads + static_cast<int64_t>(k) * n_k, grads + static_cast<int64_t>(k + 1) * n_k, scalar_t(0));
-      continue;
-    }
+    if (!used[k]) continue;  // composited nowhere in this tile: its gradients here are 0
     const int32_t id = list[k];
     const scalar_t* rec = &s.records[id * stride];
-    const int lo = std::max(s.rows[2 * id] - yb, 0) * TS, hi = (std::min(s.rows[2 * id + 1] - yb, TS - 1) + 1) * TS;
+    int c0, c1;
+    chunk_range<TS, RPC>(&s.rows[2 * id], yb, c0, c1);
     const scalar_t mx = rec[0], my = rec[1], a = rec[2], b = rec[3], c = rec[4], o = rec[5];
     const scalar_t* f = rec + kHead;
-    scalar_t* out = grads + static_cast<int64_t>(k) * n_k;
-    if constexpr (NC == 0) {
-#pragma omp simd
-      for (int p = lo; p < hi; ++p) h[p] = g_alpha_ch[p];
-      for (int64_t ch = 0; ch < nc; ++ch) {
-        const scalar_t fc = f[ch];
-        const scalar_t* g_ch = g + ch * P;
-#pragma omp simd
-        for (int p = lo; p < hi; ++p) h[p] += g_ch[p] * fc;
-      }
+    const M kv = M{} + k;
+    V sums[kHead + (NC > 0 ? NC : 0)];  // d/d mean x, y, conic a, b, c, log opacity; fused features
+    V* sf = NC > 0 ? sums + kHead : sf_scratch;
+    for (int j = 0; j < kHead; ++j) sums[j] = V{};
+    for (int64_t ch = 0; ch < nc; ++ch) sf[ch] = V{};
+    for (int q = c0; q <= c1; ++q) {
+      V hp = g_alpha_ch[q];
+      for (int64_t ch = 0; ch < nc; ++ch) hp += g[ch * NCH + q] * f[ch];
+      const V dx = px[q] - mx, dy = py[q] - my;
+      const V raw = o * exp_vec(power_at(dx, dy, a, b, c));
+      const M unclamped = raw < v_amax;
+      const V alpha = unclamped ? raw : v_amax;
+      const M vis = (kv < stop[q]) & (alpha > amin);
+      const V t = trans[q];
+      const V wi = vis ? alpha * t : zero;
+      const V pre = prefix[q] + wi * hp;
+      prefix[q] = pre;
+      const V g_alpha = t * hp - (total[q] - pre) / (one - alpha);
+      const V g_pow = (vis & unclamped) ? g_alpha * alpha : zero;
+      trans[q] = vis ? t * (one - alpha) : t;
+      sums[0] += g_pow * (a * dx + b * dy);
+      sums[1] += g_pow * (b * dx + c * dy);
+      sums[2] += g_pow * dx * dx;
+      sums[3] += g_pow * dx * dy;
+      sums[4] += g_pow * dy * dy;
+      sums[5] += g_pow;
+      for (int64_t ch = 0; ch < nc; ++ch) sf[ch] += wi * g[ch * NCH + q];
     }
-    scalar_t s_mx = 0, s_my = 0, s_a = 0, s_b = 0, s_c = 0, s_lo = 0;
-    // feature sums as scalars (an array reduction is combined lane by lane, ~3x slower here)
-    static_assert(NC <= 5, "fused channel count above 5");
-    scalar_t s_f0 = 0, s_f1 = 0, s_f2 = 0, s_f3 = 0, s_f4 = 0;
-#pragma omp simd reduction(+ : s_mx, s_my, s_a, s_b, s_c, s_lo, s_f0, s_f1, s_f2, s_f3, s_f4)
-    for (int p = lo; p < hi; ++p) {
-      scalar_t hp;
-      if constexpr (NC > 0) {
-        hp = g_alpha_ch[p];
-        for (int ch = 0; ch < NC; ++ch) hp += g[ch * P + p] * f[ch];
-      } else {
-        hp = h[p];
-      }
-      const scalar_t dx = pxs[p] - mx, dy = pys[p] - my;
-      const scalar_t raw = o * exp_row(power_at(dx, dy, a, b, c));
-      const bool unclamped = raw < amax;
-      const scalar_t alpha = unclamped ? raw : amax;
-      const bool vis = (k < stop[p]) & (alpha > amin);
-      const scalar_t t = trans[p];
-      const scalar_t wi = vis ? alpha * t : scalar_t(0);
-      const scalar_t pre = prefix[p] + wi * hp;
-      prefix[p] = pre;
-      const scalar_t g_alpha = t * hp - (total[p] - pre) / (scalar_t(1) - alpha);
-      const scalar_t g_pow = (vis & unclamped) ? g_alpha * alpha : scalar_t(0);
-      trans[p] = vis ? t * (scalar_t(1) - alpha) : t;
-      s_mx += g_pow * (a * dx + b * dy);
-      s_my += g_pow * (b * dx + c * dy);
-      s_a += g_pow * dx * dx;
-      s_b += g_pow * dx * dy;
-      s_c += g_pow * dy * dy;
-      s_lo += g_pow;
-      if constexpr (NC > 0) {
-        s_f0 += wi * g[p];
-        if constexpr (NC > 1) s_f1 += wi * g[P + p];
-        if constexpr (NC > 2) s_f2 += wi * g[2 * P + p];
-        if constexpr (NC > 3) s_f3 += wi * g[3 * P + p];
-        if constexpr (NC > 4) s_f4 += wi * g[4 * P + p];
-      } else {
-        w[p] = wi;
-      }
-    }
-    out[0] = s_mx;
-    out[1] = s_my;
-    out[2] = scalar_t(-0.5) * s_a;
-    out[3] = -s_b;
-    out[4] = scalar_t(-0.5) * s_c;
-    out[5] = s_lo;
+    scalar_t tot[kHead + (NC > 0 ? NC : 0)];
+    scalar_t* out = per + static_cast<int64_t>(id) * n_k;
     if constexpr (NC > 0) {
-      const scalar_t sums[5] = {s_f0, s_f1, s_f2, s_f3, s_f4};
-      for (int ch = 0; ch < NC; ++ch) out[kHead + ch] = sums[ch];
+      lane_totals<scalar_t>(sums, kHead + NC, tot);
+      for (int ch = 0; ch < NC; ++ch) out[kHead + ch] += tot[kHead + ch];
     } else {
-      for (int64_t ch = 0; ch < nc; ++ch) {
-        const scalar_t* g_ch = g + ch * P;
-        scalar_t sum = 0;
-#pragma omp simd reduction(+ : sum)
-        for (int p = lo; p < hi; ++p) sum += w[p] * g_ch[p];
-        out[kHead + ch] = sum;
-      }
+      lane_totals<scalar_t>(sums, kHead, tot);
+      for (int64_t ch = 0; ch < nc; ++ch) out[kHead + ch] += lane_sum(sf[ch]);
     }
+    out[0] += tot[0];
+    out[1] += tot[1];
+    out[2] += scalar_t(-0.5) * tot[2];
+    out[3] -= tot[3];
+    out[4] += scalar_t(-0.5) * tot[4];
+    out[5] += tot[5];
   }
-  // the Gaussians behind every pixel's stop get no gradient from this tile
-  std::fill(grads + std::min<int64_t>(last, count) * n_k, grads + static_cast<int64_t>(count) * n_k, scalar_t(0));
 }
 
 // Forward of every tile: colour [C, H, W, D], depth and alpha [C, H, W] (every pixel written),
-// stops [C * T * P]; the tile
-// lists are returned for the backward.
+// stops [C * T * P]; the packed records, rows, order and tile lists are returned for the backward.
 template <typename scalar_t, int TS, int NC>
 void forward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, scalar_t* colour, scalar_t* depth,
-                 scalar_t* alpha, int32_t* stops,
-                 std::vector<int64_t>& offsets, std::vector<int32_t>& ids, std::vector<uint8_t>& used) {
-  constexpr int P = TS * TS;
-  const Scene<scalar_t> s = pack<scalar_t>(in, TS, rules, threads);
-  bin(s, offsets, ids, threads);
+                 scalar_t* alpha, int32_t* stops, std::vector<int32_t>& order, std::vector<scalar_t>& records,
+                 std::vector<int32_t>& rows, std::vector<int64_t>& offsets, std::vector<int32_t>& ids,
+                 std::vector<uint8_t>& used) {
+  typedef VecOf<scalar_t> V;
+  constexpr int L = Simd<scalar_t>::L, P = TS * TS, NCH = P / L;
+  pack_and_bin<scalar_t>(in, TS, rules, threads, order, records, rows, offsets, ids);
+  const Packed<scalar_t> s{in.n_feat, in.width, in.height, (in.width + TS - 1) / TS, (in.height + TS - 1) / TS,
+                           records.data(), rows.data()};
   used.assign(ids.size(), 0);
-  const int64_t n_tiles = static_cast<int64_t>(s.tiles_x) * s.tiles_y, n_ch = s.n_feat + 2;
+  const int64_t n_tiles = static_cast<int64_t>(s.tiles_x) * s.tiles_y, d = in.n_feat, n_ch = d + 2;
   const int width = in.width, height = in.height;
 #pragma omp parallel num_threads(threads)
   {
-    std::vector<scalar_t> acc(n_ch * P);
+    std::vector<V> acc_buf(n_ch * NCH);
+    V* acc = acc_buf.data();
 #pragma omp for schedule(dynamic, 1)
-    for (int64_t t = 0; t < s.n_cams * n_tiles; ++t) {
+    for (int64_t t = 0; t < in.n_cams * n_tiles; ++t) {
       const int64_t c = t / n_tiles, local = t % n_tiles;
       const int tx = static_cast<int>(local % s.tiles_x), ty = static_cast<int>(local / s.tiles_x);
       composite_tile<scalar_t, TS, NC>(s, ids.data() + offsets[t], static_cast<int32_t>(offsets[t + 1] - offsets[t]),
-                                       tx, ty, rules, acc.data(), stops + t * P, used.data() + offsets[t]);
+                                       tx, ty, rules, acc, stops + t * P, used.data() + offsets[t]);
       for (int p = 0; p < P; ++p) {
         const int x = tx * TS + p % TS, y = ty * TS + p / TS;
         if (x >= width || y >= height) continue;
-        const int64_t pix = (c * height + y) * width + x;
-        for (int64_t ch = 0; ch < n_ch - 2; ++ch) colour[pix * (n_ch - 2) + ch] = acc[ch * P + p];
-        depth[pix] = acc[(n_ch - 2) * P + p];
-        alpha[pix] = acc[(n_ch - 1) * P + p];
+        const int64_t pix = (c * height + y) * width + x, q = p / L, l = p % L;
+        for (int64_t ch = 0; ch < d; ++ch) colour[pix * d + ch] = acc[ch * NCH + q][l];
+        depth[pix] = acc[d * NCH + q][l];
+        alpha[pix] = acc[(d + 1) * NCH + q][l];
       }
     }
   }
 }
 
-// Backward of every tile, then the per-intersection gradients summed per Gaussian. Outputs:
-// g_means2d [C, N, 2], g_conics [C, N, 3], g_depths [C, N] (overwritten), g_opacities [N] and
-// g_features (shape of the features; both zero-filled by the caller).
+// Backward of every tile into per-thread, per-record sums (tiles dealt to threads round robin, so
+// the sums do not depend on timing), then summed per Gaussian. Outputs (zero-filled by the
+// caller): g_means2d [C, N, 2], g_conics [C, N, 3], g_depths [C, N], g_opacities [N], g_features
+// (shape of the features).
 template <typename scalar_t, int TS, int NC>
-void backward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, const int64_t* offsets,
-                  const int32_t* ids, const uint8_t* used, int64_t n_isect, const int32_t* stops,
-                  const scalar_t* const outs[3], const scalar_t* const grad_outs[3], scalar_t* gm, scalar_t* gc, scalar_t* gd, scalar_t* go, scalar_t* gf) {
-  constexpr int P = TS * TS;
-  const Scene<scalar_t> s = pack<scalar_t>(in, TS, rules, threads);
-  const int64_t n_tiles = static_cast<int64_t>(s.tiles_x) * s.tiles_y, d = s.n_feat, n_ch = d + 2;
+void backward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, const Packed<scalar_t>& s,
+                  const int32_t* order, int64_t m, const int64_t* offsets, const int32_t* ids, const uint8_t* used,
+                  const int32_t* stops, const scalar_t* const outs[3], const scalar_t* const grad_outs[3],
+                  scalar_t* gm, scalar_t* gc, scalar_t* gd, scalar_t* go, scalar_t* gf) {
+  typedef VecOf<scalar_t> V;
+  constexpr int L = Simd<scalar_t>::L, P = TS * TS, NCH = P / L;
+  const int64_t n_tiles = static_cast<int64_t>(s.tiles_x) * s.tiles_y, d = in.n_feat, n_ch = d + 2;
   const int64_t n_k = kHead + d + 1;
   const int width = in.width, height = in.height;
-  std::unique_ptr<scalar_t[]> grads(new scalar_t[std::max<int64_t>(n_isect * n_k, 1)]);  // every row written
+  threads = std::max(1, std::min<int>(threads, static_cast<int>(std::min<int64_t>(in.n_cams * n_tiles, 1 << 20))));
+  std::vector<std::vector<scalar_t>> per_thread(threads);
 #pragma omp parallel num_threads(threads)
   {
-    std::vector<scalar_t> g(n_ch * P), total(P);
-    std::vector<int32_t> stop(P);
-#pragma omp for schedule(dynamic, 1)
-    for (int64_t t = 0; t < s.n_cams * n_tiles; ++t) {
+#ifdef _OPENMP
+    const int me = omp_get_thread_num();
+#else
+    const int me = 0;
+#endif
+    std::vector<scalar_t>& per = per_thread[me];
+    per.assign(std::max<int64_t>(m * n_k, 1), scalar_t(0));
+    std::vector<V> g(n_ch * NCH), total(NCH), sf(n_ch);
+#pragma omp for schedule(static, 1)
+    for (int64_t t = 0; t < in.n_cams * n_tiles; ++t) {
+      const int32_t count = static_cast<int32_t>(offsets[t + 1] - offsets[t]);
+      if (count == 0) continue;
       const int64_t c = t / n_tiles, local = t % n_tiles;
       const int tx = static_cast<int>(local % s.tiles_x), ty = static_cast<int>(local / s.tiles_x);
       for (int p = 0; p < P; ++p) {
-        const int x = tx * TS + p % TS, y = ty * TS + p / TS;
-        total[p] = 0;
+        const int x = tx * TS + p % TS, y = ty * TS + p / TS, q = p / L, l = p % L;
+        total[q][l] = 0;
         if (x >= width || y >= height) {
-          stop[p] = 0;
-          for (int64_t ch = 0; ch < n_ch; ++ch) g[ch * P + p] = 0;
+          for (int64_t ch = 0; ch < n_ch; ++ch) g[ch * NCH + q][l] = 0;
           continue;
         }
-        stop[p] = stops[t * P + p];
         const int64_t pix = (c * height + y) * width + x;
         for (int64_t ch = 0; ch < n_ch; ++ch) {
           // channels: D colours, then depth, then alpha (one value per pixel each)
           const int plane = ch < d ? 0 : static_cast<int>(ch - d + 1);
           const int64_t at = plane == 0 ? pix * d + ch : pix;
-          g[ch * P + p] = grad_outs[plane][at];
-          total[p] += grad_outs[plane][at] * outs[plane][at];
+          g[ch * NCH + q][l] = grad_outs[plane][at];
+          total[q][l] += grad_outs[plane][at] * outs[plane][at];
         }
       }
-      backward_tile<scalar_t, TS, NC>(s, ids + offsets[t], static_cast<int32_t>(offsets[t + 1] - offsets[t]), tx, ty,
-                                  rules, g.data(), total.data(), stop.data(), used + offsets[t], grads.get() + offsets[t] * n_k);
+      backward_tile<scalar_t, TS, NC>(s, ids + offsets[t], count, tx, ty, rules, g.data(), total.data(), stops + t * P,
+                                      used + offsets[t], sf.data(), per.data());
     }
   }
-  // sum the intersections of each Gaussian (serial: the lists of one Gaussian span many tiles)
-  std::vector<scalar_t> per(s.n_cams * s.n * n_k, scalar_t(0));
-  for (int64_t m = 0; m < n_isect; ++m) {
-    scalar_t* dst = &per[static_cast<int64_t>(ids[m]) * n_k];
-    const scalar_t* src = &grads[m * n_k];
-    for (int64_t j = 0; j < n_k; ++j) dst[j] += src[j];
+  // sum the threads' buffers (fixed order) and scatter per Gaussian
+  scalar_t* sum = per_thread[0].data();
+  for (int th = 1; th < threads; ++th) {
+    if (per_thread[th].empty()) continue;  // OpenMP gave fewer threads
+    const scalar_t* other = per_thread[th].data();
+#pragma omp parallel for schedule(static) num_threads(threads)
+    for (int64_t j = 0; j < m * n_k; ++j) sum[j] += other[j];
   }
-  for (int64_t i = 0; i < s.n_cams * s.n; ++i) {
-    const scalar_t* src = &per[i * n_k];
-    const int64_t gi = i % s.n;
+  for (int64_t r = 0; r < m; ++r) {
+    const scalar_t* src = &sum[r * n_k];
+    const int64_t i = order[r], gi = i % in.n;
     gm[2 * i] = src[0];
     gm[2 * i + 1] = src[1];
     gc[3 * i] = src[2];
@@ -468,7 +631,7 @@ void backward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, c
     gd[i] = src[kHead + d];
   }
   const scalar_t min_o = static_cast<scalar_t>(rules.min_opacity);
-  for (int64_t gi = 0; gi < s.n; ++gi) {
+  for (int64_t gi = 0; gi < in.n; ++gi) {
     const scalar_t o = in.opacities[gi];
     go[gi] = o >= min_o ? go[gi] / o : scalar_t(0);
   }
@@ -479,12 +642,15 @@ void backward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, c
 #ifdef RASTER_KERNELS_ONLY
 // Standalone build of the kernels (vectorisation reports, no torch headers).
 __attribute__((used)) void kernels_float8(const Inputs<float>& in, const Rules& rules, float* out, int32_t* stops,
-                    std::vector<int64_t>& offsets, std::vector<int32_t>& ids, std::vector<uint8_t>& used, float* g) {
-  forward_all<float, 8, 5>(in, rules, 1, out, out, out, stops, offsets, ids, used);
+                                          std::vector<int32_t>& order, std::vector<float>& records,
+                                          std::vector<int32_t>& rows, std::vector<int64_t>& offsets,
+                                          std::vector<int32_t>& ids, std::vector<uint8_t>& used, float* g) {
+  forward_all<float, 8, 5>(in, rules, 1, out, out, out, stops, order, records, rows, offsets, ids, used);
   const float* const three[3] = {out, out, out};
-  backward_all<float, 8, 5>(in, rules, 1, offsets.data(), ids.data(), used.data(), static_cast<int64_t>(ids.size()), stops,
-                            three, three,
-                         g, g, g, g, g);
+  const Packed<float> s{in.n_feat, in.width, in.height, (in.width + 7) / 8, (in.height + 7) / 8, records.data(),
+                        rows.data()};
+  backward_all<float, 8, 5>(in, rules, 1, s, order.data(), static_cast<int64_t>(order.size()), offsets.data(),
+                            ids.data(), used.data(), stops, three, three, g, g, g, g, g);
 }
 #else
 
@@ -526,6 +692,13 @@ auto dispatch(const at::Tensor& like, int64_t tile, int64_t n_feat, Fn&& fn) {
   return by_channels(double());
 }
 
+template <typename T>
+at::Tensor tensor_of(const std::vector<T>& v, int64_t n, at::ScalarType type) {
+  at::Tensor out = at::empty({n}, at::TensorOptions().dtype(type));
+  if (n > 0) std::memcpy(out.data_ptr(), v.data(), n * sizeof(T));
+  return out;
+}
+
 }  // namespace
 
 std::vector<at::Tensor> rasterize_forward(const at::Tensor& means2d, const at::Tensor& conics,
@@ -542,19 +715,21 @@ std::vector<at::Tensor> rasterize_forward(const at::Tensor& means2d, const at::T
     at::Tensor depth = at::empty({in.n_cams, height, width, 1}, means2d.options());
     at::Tensor alpha = at::empty({in.n_cams, height, width, 1}, means2d.options());
     at::Tensor stops = at::empty({in.n_cams * n_tiles * TS * TS}, radii.options());
+    std::vector<int32_t> order, rows, ids;
+    std::vector<scalar_t> records;
     std::vector<int64_t> offsets;
-    std::vector<int32_t> ids;
     std::vector<uint8_t> used;
     forward_all<scalar_t, TS, NC>(in, r, at::get_num_threads(), colour.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
-                                  alpha.data_ptr<scalar_t>(), stops.data_ptr<int32_t>(),
-                                  offsets, ids, used);
-    at::Tensor offsets_t = at::empty({static_cast<int64_t>(offsets.size())}, at::kLong);
-    std::memcpy(offsets_t.data_ptr<int64_t>(), offsets.data(), offsets.size() * sizeof(int64_t));
-    at::Tensor ids_t = at::empty({static_cast<int64_t>(ids.size())}, at::kInt);
-    if (!ids.empty()) std::memcpy(ids_t.data_ptr<int32_t>(), ids.data(), ids.size() * sizeof(int32_t));
-    at::Tensor used_t = at::empty({static_cast<int64_t>(used.size())}, at::kByte);
-    if (!used.empty()) std::memcpy(used_t.data_ptr<uint8_t>(), used.data(), used.size());
-    return std::vector<at::Tensor>{colour, depth, alpha, offsets_t, ids_t, used_t, stops};
+                                  alpha.data_ptr<scalar_t>(), stops.data_ptr<int32_t>(), order, records, rows, offsets,
+                                  ids, used);
+    const int64_t m = static_cast<int64_t>(order.size()), stride = kHead + in.n_feat + 1;
+    at::Tensor records_t = at::empty({m, stride}, means2d.options());
+    if (m > 0) std::memcpy(records_t.data_ptr<scalar_t>(), records.data(), m * stride * sizeof(scalar_t));
+    return std::vector<at::Tensor>{colour, depth, alpha,
+                                   tensor_of(offsets, static_cast<int64_t>(offsets.size()), at::kLong),
+                                   tensor_of(ids, static_cast<int64_t>(ids.size()), at::kInt),
+                                   tensor_of(used, static_cast<int64_t>(used.size()), at::kByte), stops,
+                                   tensor_of(order, m, at::kInt), records_t, tensor_of(rows, 2 * m, at::kInt)};
   });
 }
 
@@ -562,32 +737,40 @@ std::vector<at::Tensor> rasterize_backward(const at::Tensor& means2d, const at::
                                            const at::Tensor& opacities, const at::Tensor& features,
                                            const at::Tensor& depths, const at::Tensor& radii, int64_t width,
                                            int64_t height, int64_t tile, const std::vector<double>& rules,
-                                           const at::Tensor& offsets, const at::Tensor& ids, const at::Tensor& used,
-                                           const at::Tensor& stops, const std::vector<at::Tensor>& outs,
+                                           const std::vector<at::Tensor>& saved, const std::vector<at::Tensor>& outs,
                                            const std::vector<at::Tensor>& grad_outs) {
   TORCH_CHECK(outs.size() == 3 && grad_outs.size() == 3, "raster_cpu: colour, depth and alpha and their gradients");
   for (int i = 0; i < 3; ++i) {
     TORCH_CHECK(grad_outs[i].is_contiguous() && outs[i].is_contiguous() && grad_outs[i].sizes() == outs[i].sizes(),
                 "raster_cpu: each gradient must be contiguous and match its output");
   }
+  TORCH_CHECK(saved.size() == 7, "raster_cpu: the forward's offsets, ids, used, stops, order, records and rows");
+  const at::Tensor &offsets = saved[0], &ids = saved[1], &used = saved[2], &stops = saved[3], &order = saved[4],
+                   &records = saved[5], &rows = saved[6];
   TORCH_CHECK(used.scalar_type() == at::kByte && used.numel() == ids.numel(), "raster_cpu: used must match ids");
   const Rules r = rules_from(rules);
   return dispatch(means2d, tile, features.size(-1), [&](auto scalar, auto ts, auto nc) {
     using scalar_t = decltype(scalar);
     constexpr int TS = decltype(ts)::value, NC = decltype(nc)::value;
     const Inputs<scalar_t> in = inputs_of<scalar_t>(means2d, conics, opacities, features, depths, radii, width, height);
-    at::Tensor g_means2d = at::empty_like(means2d), g_conics = at::empty_like(conics);
-    at::Tensor g_depths = at::empty_like(depths), g_opacities = at::zeros_like(opacities);
+    TORCH_CHECK(records.scalar_type() == means2d.scalar_type() && records.is_contiguous() &&
+                    records.size(0) == order.numel() && records.size(1) == kHead + in.n_feat + 1,
+                "raster_cpu: the saved records do not match the inputs");
+    at::Tensor g_means2d = at::zeros_like(means2d), g_conics = at::zeros_like(conics);
+    at::Tensor g_depths = at::zeros_like(depths), g_opacities = at::zeros_like(opacities);
     at::Tensor g_features = at::zeros_like(features);
     const scalar_t* const out_p[3] = {outs[0].data_ptr<scalar_t>(), outs[1].data_ptr<scalar_t>(),
                                       outs[2].data_ptr<scalar_t>()};
     const scalar_t* const grad_p[3] = {grad_outs[0].data_ptr<scalar_t>(), grad_outs[1].data_ptr<scalar_t>(),
                                        grad_outs[2].data_ptr<scalar_t>()};
-    backward_all<scalar_t, TS, NC>(in, r, at::get_num_threads(), offsets.data_ptr<int64_t>(), ids.data_ptr<int32_t>(),
-                                   used.data_ptr<uint8_t>(), ids.numel(), stops.data_ptr<int32_t>(), out_p, grad_p,
-                                   g_means2d.data_ptr<scalar_t>(), g_conics.data_ptr<scalar_t>(),
-                                   g_depths.data_ptr<scalar_t>(), g_opacities.data_ptr<scalar_t>(),
-                                   g_features.data_ptr<scalar_t>());
+    const Packed<scalar_t> s{in.n_feat, in.width, in.height, static_cast<int>((width + TS - 1) / TS),
+                             static_cast<int>((height + TS - 1) / TS), records.data_ptr<scalar_t>(),
+                             rows.data_ptr<int32_t>()};
+    backward_all<scalar_t, TS, NC>(in, r, at::get_num_threads(), s, order.data_ptr<int32_t>(), order.numel(),
+                                   offsets.data_ptr<int64_t>(), ids.data_ptr<int32_t>(), used.data_ptr<uint8_t>(),
+                                   stops.data_ptr<int32_t>(), out_p, grad_p, g_means2d.data_ptr<scalar_t>(),
+                                   g_conics.data_ptr<scalar_t>(), g_depths.data_ptr<scalar_t>(),
+                                   g_opacities.data_ptr<scalar_t>(), g_features.data_ptr<scalar_t>());
     return std::vector<at::Tensor>{g_means2d, g_conics, g_opacities, g_features, g_depths};
   });
 }
