@@ -13,7 +13,7 @@ from edygs_ns.model.dynamic_seeding import (
 from edygs_ns.model.appearance import SH_C0
 from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES, init_gaussians, seed_tensors
 from edygs_ns.model.strategy import DensifyConfig, append_gaussians, make_strategy
-from edygs_ns.training.schedule import PhaseSchedule, time_window
+from edygs_ns.model.phases import PhaseSchedule, time_window
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from edygs_ns.training.resume import check_resume_phase
-from edygs_ns.training.schedule import PhaseSchedule
+from edygs_ns.model.phases import PhaseSchedule
 
 
 def test_resume_after_the_switch_into_an_earlier_phase_is_refused() -> None:

@@ -6,7 +6,7 @@ import pytest
 
 from edygs_ns.configs.method_configs import MAX_ITERATIONS
 from edygs_ns.configs.run_length import RunShape, run_length_args
-from edygs_ns.training.schedule import PhaseSchedule
+from edygs_ns.model.phases import PhaseSchedule
 
 
 def _as_dict(args):

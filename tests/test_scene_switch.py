@@ -13,7 +13,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 from train_helpers import make_tiny_scene, tiny_trainer_config  # noqa: E402
 
-from edygs_ns.training.schedule import Phase  # noqa: E402
+from edygs_ns.model.phases import Phase  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -57,7 +57,7 @@ def test_nothing_moves_nothing_is_added(tmp_path):
     model = trainer.pipeline.model
     before = model.num_points
     model.train()
-    model.before_step(trainer.optimizers, POSE_INIT + STATIC)  # the switch
+    trainer.pipeline.phase_driver.before_step(POSE_INIT + STATIC)  # the switch
     assert model.phase is Phase.DYNAMIC and model.static_masks.numel() > 0
     assert _movers(model) == 0 and not model.rigid_motion.active
     assert model.num_points == before  # no dynamic seeds

@@ -4,7 +4,7 @@ import pytest
 
 from edygs_ns.model.ablations import ABLATIONS, apply_ablation
 from edygs_ns.model.edygs_model import EdygsModelConfig
-from edygs_ns.training.schedule import (
+from edygs_ns.model.phases import (
     CAMERA_GROUP, DEFORMATION_GROUP, MASK_GROUP, Phase, PhaseSchedule, is_active, is_trainable, phase_at,
 )
 
@@ -51,7 +51,7 @@ def test_ablation_presets_set_switches_and_skip_warmup_without_edi():
 
 def test_a_misspelt_loss_name_raises() -> None:
     from edygs_ns.losses.names import LossName
-    from edygs_ns.training.schedule import is_active
+    from edygs_ns.model.phases import is_active
 
     assert is_active(LossName.EVENT, Phase.STATIC) and is_active("event", Phase.STATIC)
     with pytest.raises(ValueError, match="evnt"):
@@ -80,7 +80,7 @@ def test_every_loss_name_the_model_uses_is_a_loss_term() -> None:
 def test_parameter_groups_come_from_the_gaussian_attributes() -> None:
     from edygs_ns.configs.method_configs import LEARNING_RATES, PARAMETER_GROUPS, optimizer_configs
     from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES
-    from edygs_ns.training.schedule import GAUSSIAN_GROUPS, MASK_GROUP, TRAINABLE
+    from edygs_ns.model.phases import GAUSSIAN_GROUPS, MASK_GROUP, TRAINABLE
 
     assert PARAMETER_GROUPS[: len(GAUSSIAN_ATTRIBUTES)] == GAUSSIAN_ATTRIBUTES
     assert set(optimizer_configs()) == set(PARAMETER_GROUPS) == set(LEARNING_RATES)

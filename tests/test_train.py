@@ -16,7 +16,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 from train_helpers import make_tiny_scene, tiny_trainer_config  # noqa: E402
 
-from edygs_ns.training.schedule import Phase  # noqa: E402
+from edygs_ns.model.phases import Phase  # noqa: E402
 
 BIN = Path(sys.executable).parent
 
@@ -54,12 +54,12 @@ def test_phases_decide_what_trains(tiny_scene, tmp_path):
     trainer = _setup_trainer(config)
     model = trainer.pipeline.model
     model.train()
-    model.before_step(trainer.optimizers, 0)
+    trainer.pipeline.phase_driver.before_step(0)
     assert model.phase is Phase.POSE_INIT
     assert model.gauss_params["means"].requires_grad and not model.gauss_params["mask_logit"].requires_grad
     assert not any(p.requires_grad for p in model.camera_optimizer.parameters())
     assert not any(p.requires_grad for p in model.deformation.parameters())
-    model.before_step(trainer.optimizers, pose_init)
+    trainer.pipeline.phase_driver.before_step(pose_init)
     assert model.phase is Phase.STATIC and model.gauss_params["mask_logit"].requires_grad
     assert all(p.requires_grad for p in model.camera_optimizer.parameters())
     assert model.static_masks.numel() == 0
@@ -68,7 +68,7 @@ def test_phases_decide_what_trains(tiny_scene, tmp_path):
     trainer.train()  # the pose-init and static phases
     model.train()
     n_static = model.num_points
-    model.before_step(trainer.optimizers, pose_init + static)
+    trainer.pipeline.phase_driver.before_step(pose_init + static)
     assert model.phase is Phase.DYNAMIC and all(p.requires_grad for p in model.deformation.parameters())
     n_train = dm.train_dataset.cameras.shape[0]
     assert model.static_masks.shape[0] == n_train  # M̂ captured at the switch
@@ -101,7 +101,7 @@ def test_edi_terms_trust_the_exposure_middle(tiny_scene, tmp_path):
     # the weights reach the loss: a pair whose error sits in its middle latent costs more than the
     # same error in an end latent
     model.train()
-    model.before_step(trainer.optimizers, 0)
+    trainer.pipeline.phase_driver.before_step(0)
     first = int(torch.nonzero(place == 0)[0])
     mid = int(torch.nonzero((place == 2) & (dm.blurry_index == dm.blurry_index[first]))[0])
     image = dm.train_image(first)[..., :3].expand(2, -1, -1, -1)  # one picture in both places: only the weight differs
@@ -159,7 +159,7 @@ def test_training_lowers_the_loss_and_resumes_exactly(tiny_scene, tmp_path):
     assert resumed.optimizers.optimizers["means"].param_groups[0]["params"][0] is new.gauss_params["means"]
     assert resumed._start_step == iters
     new.train()
-    new.before_step(resumed.optimizers, resumed._start_step)
+    resumed.pipeline.phase_driver.before_step(resumed._start_step)
     assert new.phase is Phase.DYNAMIC
     resumed.train()  # nerfstudio runs max_num_iterations more steps from the loaded one
     assert (resumed_config.get_checkpoint_dir() / f"step-{iters + 4:09d}.ckpt").exists()
@@ -209,13 +209,13 @@ def test_blur_loss_sees_the_colour_that_grey_events_miss(tiny_scene, tmp_path):
     # its gradient joins the densification statistic, so Gaussians grow above the blur threshold
     assert model.strategy.grow_grad2d == model.config.densify.grow_grad2d_blur > model.config.densify.grow_grad2d
     model.train()
-    model.before_step(trainer.optimizers, 0)
+    trainer.pipeline.phase_driver.before_step(0)
     cameras, batch = dm.next_train(0)
     assert "blurry" in batch
     image = batch["image"][..., :3]
     outputs = {"rgb": image.clone(), "mask": torch.zeros(*image.shape[:-1], 1)}
     assert "blur" not in model.get_loss_dict(outputs, batch)  # pose-init: EDI latents only
-    model.before_step(trainer.optimizers, 3)
+    trainer.pipeline.phase_driver.before_step(3)
     assert model.phase is Phase.STATIC
     # renders equal to the EDI latents average to the blurry frame (EDI keeps the mean): up to
     # 8-bit rounding and clipping, no blur loss

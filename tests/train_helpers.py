@@ -12,7 +12,7 @@ from nerfstudio.engine.trainer import TrainerConfig
 from edygs_ns.configs.method_configs import edygs_trainer_config
 from edygs_ns.model.deformation import DeformationConfig
 from edygs_ns.sim.writer import SynthConfig, write_synthetic_scene
-from edygs_ns.training.schedule import PhaseSchedule
+from edygs_ns.model.phases import PhaseSchedule
 
 #: tiny scene: 48x36 pixels, 4 blurry frames, k = 5 -> 20 latents.
 TINY_SCENE = dict(width=48, height=36, n_frames=4, k=5, sim_steps_per_exposure=12, novel_stride=2)

@@ -14,7 +14,6 @@ from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
-from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from edygs_ns.compat import allow_nerfstudio_checkpoints
@@ -23,7 +22,8 @@ from edygs_ns.data.datamanager import EdygsDataManagerConfig
 from edygs_ns.data.dataparser import EdygsDataParserConfig
 from edygs_ns.model.edygs_model import EdygsModelConfig
 from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES
-from edygs_ns.training.schedule import CAMERA_GROUP, DEFORMATION_GROUP, MASK_GROUP, RIGID_GROUP, PhaseSchedule
+from edygs_ns.model.phases import CAMERA_GROUP, DEFORMATION_GROUP, MASK_GROUP, RIGID_GROUP, PhaseSchedule
+from edygs_ns.training.pipeline import EdygsPipelineConfig
 
 allow_nerfstudio_checkpoints()
 
@@ -74,7 +74,7 @@ def edygs_trainer_config(method_name: str = "edygs") -> TrainerConfig:
         steps_per_eval_all_images=1_000_000,
         max_num_iterations=MAX_ITERATIONS,
         mixed_precision=False,
-        pipeline=VanillaPipelineConfig(
+        pipeline=EdygsPipelineConfig(
             datamanager=EdygsDataManagerConfig(dataparser=EdygsDataParserConfig()),
             model=EdygsModelConfig(schedule=PhaseSchedule(pose_init_iters=POSE_INIT_ITERS, static_iters=STATIC_ITERS)),
         ),

@@ -50,10 +50,9 @@ def scale_translations(c2w: np.ndarray, factor: float) -> np.ndarray:
 def refined_train_poses(model: torch.nn.Module, cameras: Cameras) -> Float[Tensor, "N 3 4"]:
     """Training poses after the model's pose refinement, [N, 3, 4] on the cameras' device.
 
-    Uses the model's own `camera_to_worlds(camera)` (EdygsModel), which applies the camera
-    optimiser to cameras that carry `metadata["cam_idx"]` while the model is in training mode;
-    the model is switched to training mode only for this call and then restored. Models without
-    that method, or without pose refinement, give the cameras' poses unchanged.
+    Uses the model's `refined_camera_to_worlds(camera)` (EdygsModel), which applies the camera
+    optimiser to cameras that carry `metadata["cam_idx"]`. Models without that method, or
+    without pose refinement, give the cameras' poses unchanged.
 
     Args:
         model: the trained model (EdygsModel).
@@ -63,7 +62,7 @@ def refined_train_poses(model: torch.nn.Module, cameras: Cameras) -> Float[Tenso
         [N, 3, 4] refined camera-to-world poses (OpenGL axes).
     """
     initial = cameras.camera_to_worlds
-    if not hasattr(model, "camera_to_worlds"):
+    if not hasattr(model, "refined_camera_to_worlds"):
         return initial.clone()
     device = next(model.parameters()).device
     query = Cameras(
@@ -72,12 +71,7 @@ def refined_train_poses(model: torch.nn.Module, cameras: Cameras) -> Float[Tenso
         height=cameras.height.to(device), camera_type=cameras.camera_type.to(device),
         metadata={"cam_idx": torch.arange(cameras.shape[0], device=device)[:, None]},  # [N, 1]: per-camera field
     )
-    was_training = model.training
-    model.train()
-    try:
-        refined = model.camera_to_worlds(query)  # type: ignore[operator]
-    finally:
-        model.train(was_training)
+    refined = model.refined_camera_to_worlds(query)  # type: ignore[operator]
     return refined[:, :POSE_ROWS, :].to(initial.device, initial.dtype)
 
 

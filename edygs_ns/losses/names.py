@@ -1,6 +1,6 @@
 """The names of the loss terms: one enum, so that a misspelt name raises instead of never firing.
 
-The model config weighs each term (``lambda_*``), :mod:`edygs_ns.training.schedule` says which
+The model config weighs each term (``lambda_*``), :mod:`edygs_ns.model.phases` says which
 terms count in which phase, and the model's loss dict is keyed by these values.
 """
 

@@ -1,15 +1,17 @@
 """The EDyGS model: motion-mask Gaussians + deformation field + per-latent pose refinement.
 
-The model orchestrates; the maths lives in ``losses/``, ``model/deformation.py``,
-``model/appearance.py`` and the rasteriser backends; what trains when lives in
-``training/schedule.py``.
+The model renders, computes the losses and carries out the phase steps it is asked for
+(``apply_phase``, ``enter_dynamic_phase``, ``refresh_motion``); the maths lives in ``losses/``,
+``model/deformation.py``, ``model/appearance.py`` and the rasteriser backends; what trains when is
+``model/phases.py``, and the training callbacks that drive the phases by step are
+``training/phase_driver.py``.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Dict, List, Literal, Optional, Tuple, Type, Union
+from typing import Callable, Dict, List, Literal, Optional, Tuple, Type, Union
 
 import torch
 from torch import Tensor
@@ -45,8 +47,7 @@ from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES, init_gaussians, seed_t
 from edygs_ns.model.splat_export_view import SplatExportView
 from edygs_ns.model.strategy import DensifyConfig, append_gaussians, make_strategy, strategy_info
 from edygs_ns.render.contract import RasterOutputs, select_backend
-from edygs_ns.training.resume import check_resume_phase
-from edygs_ns.training.schedule import (
+from edygs_ns.model.phases import (
     CAMERA_GROUP,
     DEFORMATION_GROUP,
     MASK_GROUP,
@@ -56,7 +57,6 @@ from edygs_ns.training.schedule import (
     is_active,
     is_trainable,
     phase_at,
-    time_window,
 )
 
 #: smallest scale after adding the deformation's scale offset (world units).
@@ -198,10 +198,10 @@ class EdygsModel(SplatExportView):
         self.register_buffer("static_masks", torch.zeros(0, 0, 0, dtype=torch.float16))
         self.step = 0
         self.optimizers: Dict[str, torch.optim.Optimizer] = {}
+        # densification statistics of the step's render, read by the strategy after backward (as in splatfacto)
         self._info: Optional[dict] = None
         self._train_cameras: Optional[Cameras] = None
-        self._train_image = None  # datamanager.train_image, set by get_training_callbacks
-        self._set_time_window = None  # datamanager.set_time_window, set by get_training_callbacks
+        self._train_image: Optional[Callable[[int], Tensor]] = None  # set by bind_training_data
 
     @property
     def num_points(self) -> int:
@@ -232,31 +232,28 @@ class EdygsModel(SplatExportView):
             self.static_masks = torch.zeros_like(state_dict["static_masks"], device=self.static_masks.device)
         return super().load_state_dict(state_dict, strict=strict)
 
-    # ------------------------------------------------------------ callbacks
-    def get_training_callbacks(self, attrs: TrainingCallbackAttributes) -> List[TrainingCallback]:
-        datamanager = attrs.pipeline.datamanager
-        self._train_cameras = datamanager.train_dataset.cameras  # type: ignore[union-attr]
-        # bound methods, not the datamanager itself (an nn.Module attribute would join the state dict)
-        self._train_image = getattr(datamanager, "train_image", None)
-        self._set_time_window = getattr(datamanager, "set_time_window", None)
-        select_backend(self.device, self.config.rasterizer)  # a missing CUDA build fails here, in one line
-        return [
-            TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], self.before_step, args=[attrs.optimizers]),
-            TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.after_step),
-        ]
+    # ------------------------------------------------------------ training hooks
+    def bind_training_data(self, cameras: Cameras, image: Callable[[int], Tensor]) -> None:
+        """The training cameras (in training-index order) and a reader of training image i ([H, W, C]),
+        which the phase switch, the evidence refresh and the exposure cache render against."""
+        self._train_cameras = cameras
+        self._train_image = image
 
-    def before_step(self, optimizers, step: int) -> None:
-        """Record the step and apply the phase: what trains, and the static masks at the switch."""
+    def get_training_callbacks(self, attrs: TrainingCallbackAttributes) -> List[TrainingCallback]:
+        """The densification step after each iteration; the phases are driven by the pipeline's
+        callbacks (training/phase_driver.py)."""
+        select_backend(self.device, self.config.rasterizer)  # a missing CUDA build fails here, in one line
+        return [TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], self.after_step)]
+
+    def begin_step(self, step: int, optimizers: Dict[str, torch.optim.Optimizer]) -> None:
+        """Record the training step about to run and the optimizers (densification edits their state)."""
         self.step = step
-        self.optimizers = optimizers.optimizers
-        check_resume_phase(step, self.config.schedule, switched=self.static_masks.numel() > 0)  # a changed schedule on --load-dir
-        self.apply_phase(self.phase)
-        if self.phase is Phase.DYNAMIC and self.config.use_motion_mask and self.static_masks.numel() == 0:
-            self.enter_dynamic_phase()
-        if step == self.config.schedule.refresh_step and self.seeding_active:
-            self.refresh_motion()
-        if self._set_time_window is not None and self.seeding_active:
-            self._set_time_window(time_window(step, self.config.schedule, self.config.seeding.reference_time))
+        self.optimizers = optimizers
+
+    @property
+    def switched(self) -> bool:
+        """Whether the static -> dynamic switch has happened (M̂ stored; kept in checkpoints)."""
+        return self.static_masks.numel() > 0
 
     @property
     def seeding_active(self) -> bool:
@@ -467,10 +464,15 @@ class EdygsModel(SplatExportView):
         return torch.as_tensor(camera.metadata["cam_idx"], dtype=torch.long).reshape(-1).cpu()
 
     def camera_to_worlds(self, camera: Cameras) -> Tensor:
-        """[C, 3, 4] poses, refined by the camera optimiser for training latents."""
+        """[C, 3, 4] poses the model renders with: refined for training latents while training, as given otherwise."""
+        return self.refined_camera_to_worlds(camera) if self.training else camera.camera_to_worlds
+
+    def refined_camera_to_worlds(self, camera: Cameras) -> Tensor:
+        """[C, 3, 4] poses after pose refinement, for cameras that carry ``metadata["cam_idx"]``
+        (training latents); other cameras, or no refinement, give the poses unchanged."""
         c2w = camera.camera_to_worlds
         indices = self.camera_indices(camera)
-        if not self.training or indices is None or self.config.camera_optimizer.mode == "off" or not self.config.optimize_poses:
+        if indices is None or self.config.camera_optimizer.mode == "off" or not self.config.optimize_poses:
             return c2w
         return adjust_poses(c2w, self.camera_optimizer(indices).to(c2w.device))
 
@@ -502,7 +504,9 @@ class EdygsModel(SplatExportView):
         return out
 
     def render_cameras(self, camera: Cameras, deform: Optional[bool] = None) -> Dict[str, Tensor]:
-        """Render C cameras; every output has a leading camera dimension [C, H, W, ·]."""
+        """Render C cameras; every output has a leading camera dimension [C, H, W, ·], except
+        "deform_terms": per camera, the deformed subset's offsets and mask values (the motion loss's
+        input; empty when nothing deforms)."""
         if deform is None:
             # the deformation heads start at zero, so evaluating it before training is the identity
             deform = self.config.use_deformation and (self.phase is Phase.DYNAMIC or not self.training)
@@ -518,7 +522,7 @@ class EdygsModel(SplatExportView):
             [1.0, 1.0, 1.0, 0.0] if self.config.background_color == "white" else [0.0, 0.0, 0.0, 0.0], device=self.device
         )
         results: Dict[str, List[Tensor]] = {k: [] for k in ("rgb", "mask", "depth", "accumulation")}
-        self._deform_terms: List[Dict[str, Tensor]] = []
+        deform_terms: List[Dict[str, Tensor]] = []
         for c in range(camera.shape[0]):
             g = self.deformed_gaussians(times[c], deform)
             center = c2w[c, :3, 3]
@@ -536,10 +540,11 @@ class EdygsModel(SplatExportView):
             results["depth"].append(out.depth[0])
             results["accumulation"].append(out.alpha[0])
             if "d_xyz" in g:
-                self._deform_terms.append({k: g[k] for k in ("d_xyz", "d_rot", "d_scale", "deformed_mask")})
-        stacked = {k: torch.stack(v) for k, v in results.items()}
+                deform_terms.append({k: g[k] for k in ("d_xyz", "d_rot", "d_scale", "deformed_mask")})
+        stacked: Dict[str, Union[Tensor, List]] = {k: torch.stack(v) for k, v in results.items()}
         stacked["rgb_static"] = stacked["rgb"] * (1.0 - stacked["mask"])
-        return stacked
+        stacked["deform_terms"] = deform_terms
+        return stacked  # type: ignore[return-value]
 
     def get_outputs(self, camera: Cameras) -> Dict[str, Union[Tensor, List]]:  # type: ignore[override]
         """rgb, mask (motion mask M), rgb_static = rgb·(1 − M), depth, accumulation; [H, W, ·] for one
@@ -547,8 +552,11 @@ class EdygsModel(SplatExportView):
         if not isinstance(camera, Cameras):
             raise ValueError("EdygsModel.get_outputs needs a Cameras object")
         outputs = self.render_cameras(camera)
+        deform_terms = outputs.pop("deform_terms")
         if camera.shape[0] == 1:
             outputs = {k: v[0] for k, v in outputs.items()}
+        if self.training:
+            outputs["deform_terms"] = deform_terms  # read by get_loss_dict; the viewer lists only images
         background = torch.ones(3, device=self.device) if self.config.background_color == "white" else torch.zeros(3, device=self.device)
         if camera.shape[0] == 1 and not self.training:
             # the viewer lists every output as an image: give the background one too
@@ -599,9 +607,9 @@ class EdygsModel(SplatExportView):
             if indices is not None:
                 reference = self.static_masks[indices.to(self.static_masks.device)].to(self.device).float()[..., None]
                 losses["mask_consistency"] = cfg.lambda_mask_consistency * mask_consistency(mask.reshape(reference.shape), reference)
-        if cfg.use_motion_mask and is_active(LossName.MOTION, phase) and getattr(self, "_deform_terms", None):
+        if cfg.use_motion_mask and is_active(LossName.MOTION, phase) and outputs.get("deform_terms"):
             terms = []
-            for t in self._deform_terms:
+            for t in outputs["deform_terms"]:
                 m = t["deformed_mask"].detach() if cfg.detach_mask_in_motion_loss else t["deformed_mask"]
                 terms.append(motion_loss(t["d_xyz"], t["d_rot"], t["d_scale"], m))
             losses["motion"] = cfg.lambda_motion * torch.stack(terms).mean()
@@ -618,7 +626,7 @@ class EdygsModel(SplatExportView):
         cache = self.exposure_cache
         if not cache.filled:
             if self._train_image is None:
-                raise RuntimeError("the blur loss needs the datamanager's train_image (get_training_callbacks)")
+                raise RuntimeError("the blur loss needs the training images (bind_training_data)")
             cache.fill(lambda i: decode_to_linear(self._train_image(i)[..., :3].to(self.device), self.color_space))
         stacks = cache.complete(indices, linear)
         cache.store(indices, linear)

@@ -11,7 +11,7 @@ correct: the switch happens at the first resumed step.
 
 from __future__ import annotations
 
-from edygs_ns.training.schedule import Phase, PhaseSchedule, phase_at
+from edygs_ns.model.phases import Phase, PhaseSchedule, phase_at
 
 
 def check_resume_phase(step: int, schedule: PhaseSchedule, switched: bool) -> None:
