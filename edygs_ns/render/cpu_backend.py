@@ -23,11 +23,12 @@ from edygs_ns.render.contract import (
     ALPHA_MIN,
     DEFAULT_FAR,
     DEFAULT_NEAR,
+    LOW_PASS_EPS,
     TRANSMITTANCE_MIN,
     RasterOutputs,
     check_inputs,
 )
-from edygs_ns.render.projection import project_gaussians
+from edygs_ns.render.projection import Projection, project_gaussians
 from edygs_ns.render.torch_backend import CULL_MARGIN, MIN_ALPHA_FOR_DEPTH, MIN_OPACITY, TILE_SIZE
 
 #: the compositing rules handed to the kernel, in its order.
@@ -69,6 +70,45 @@ class _CompiledRaster(torch.autograd.Function):
         return (*grads, None, None)
 
 
+class _CompiledProjection(torch.autograd.Function):
+    """``projection.project_gaussians`` in C++ (same rules and expressions); backward in closed form
+    to means, quats, scales and viewmats (not Ks)."""
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx, means: Tensor, quats: Tensor, scales: Tensor, viewmats: Tensor, Ks: Tensor, settings: List[float]
+    ) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+        inputs = [t.detach().contiguous() for t in (means, quats, scales, viewmats, Ks)]
+        means2d, conics, depths, radii = load_extension().project_forward(*inputs, settings)
+        ctx.settings = settings
+        ctx.save_for_backward(*inputs)
+        ctx.mark_non_differentiable(radii)
+        return means2d, conics, depths, radii
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(  # type: ignore[override]
+        ctx, g_means2d: Tensor, g_conics: Tensor, g_depths: Tensor, _g_radii: Optional[Tensor]
+    ):
+        grads = load_extension().project_backward(
+            *ctx.saved_tensors, ctx.settings, g_means2d.contiguous(), g_conics.contiguous(), g_depths.contiguous()
+        )
+        return (*grads, None, None)
+
+
+def project_compiled(
+    means: Tensor, quats: Tensor, scales: Tensor, viewmats: Tensor, Ks: Tensor, width: int, height: int,
+    near_plane: float = DEFAULT_NEAR, far_plane: float = DEFAULT_FAR,
+) -> Projection:
+    """``project_gaussians`` with the compiled projection; the torch one (under autograd) when Ks
+    needs a gradient, which the compiled backward does not give. Shapes and units: ``Projection``."""
+    if Ks.requires_grad and torch.is_grad_enabled():
+        return project_gaussians(means, quats, scales, viewmats, Ks, width, height, near_plane, far_plane)
+    settings = [float(width), float(height), float(near_plane), float(far_plane), LOW_PASS_EPS]
+    means2d, conics, depths, radii = _CompiledProjection.apply(means, quats, scales, viewmats, Ks, settings)
+    return Projection(means2d=means2d, conics=conics, depths=depths, radii=radii)
+
+
 def rasterize_cpu(
     means: Float[Tensor, "N 3"],
     quats: Float[Tensor, "N 4"],
@@ -103,7 +143,7 @@ def rasterize_cpu(
         raise ValueError(
             f"rasterize: backgrounds has shape {tuple(backgrounds.shape)}, expected [C={n_cams}, D={n_channels}]"
         )
-    proj = project_gaussians(means, quats, scales, viewmats, Ks, width, height, near_plane, far_plane)
+    proj = project_compiled(means, quats, scales, viewmats, Ks, width, height, near_plane, far_plane)
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()

@@ -637,6 +637,212 @@ void backward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, c
   }
 }
 
+// ---------------------------------------------------------------------------------------------
+// EWA projection (the rules and expressions of edygs_ns/render/projection.py, gsplat's pinhole
+// "classic" projection): per (camera, Gaussian) the screen centre, conic, depth and radius, and
+// the closed-form backward to means, quaternions, scales and the world-to-camera matrices.
+
+struct ProjectSettings {
+  int width, height;
+  double near_plane, far_plane, eps2d;
+};
+
+constexpr double kRadiusSigmas = 3.0;     // projection.RADIUS_SIGMAS
+constexpr double kMinDiscriminant = 0.01;  // projection.MIN_DISCRIMINANT
+constexpr double kFovGuardBand = 0.3;     // projection.FOV_GUARD_BAND
+
+// Every intermediate of one (camera, Gaussian) projection that the backward needs.
+template <typename scalar_t>
+struct ProjTerms {
+  scalar_t x, y, z, inv_z, u_c, v_c, j00, j02, j11, j12;
+  bool in_range, u_free, v_free, valid;
+  scalar_t a0[3], a1[3], rot[3][3], quat[4], inv_norm, m[3][3], row0[3], row1[3];
+  scalar_t cov_a, cov_b, cov_c, det, inv_det, mx, my;
+};
+
+template <typename scalar_t>
+inline scalar_t dot3(const scalar_t* a, const scalar_t* b) {
+  return a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+}
+
+// view: world-to-camera [4, 4] row-major; k: [3, 3]; mean [3], quat [4] (wxyz), scale [3].
+template <typename scalar_t>
+inline void project_one(const scalar_t* view, const scalar_t* k, const scalar_t* mean, const scalar_t* q,
+                        const scalar_t* scale, const ProjectSettings& ps, ProjTerms<scalar_t>& t) {
+  const scalar_t w_img = ps.width, h_img = ps.height;
+  t.x = view[0] * mean[0] + view[1] * mean[1] + view[2] * mean[2] + view[3];
+  t.y = view[4] * mean[0] + view[5] * mean[1] + view[6] * mean[2] + view[7];
+  t.z = view[8] * mean[0] + view[9] * mean[1] + view[10] * mean[2] + view[11];
+  t.in_range = t.z >= static_cast<scalar_t>(ps.near_plane) && t.z <= static_cast<scalar_t>(ps.far_plane);
+  const scalar_t z_safe = t.in_range ? t.z : scalar_t(1);
+  const scalar_t fx = k[0], fy = k[4], cx = k[2], cy = k[5];
+  t.inv_z = scalar_t(1) / z_safe;
+  const scalar_t u = t.x * t.inv_z, v = t.y * t.inv_z;
+  t.mx = fx * u + cx;
+  t.my = fy * v + cy;
+  const scalar_t band = static_cast<scalar_t>(kFovGuardBand);
+  const scalar_t tan_x = scalar_t(0.5) * w_img / fx, tan_y = scalar_t(0.5) * h_img / fy;
+  const scalar_t lim_x_pos = (w_img - cx) / fx + band * tan_x, lim_x_neg = cx / fx + band * tan_x;
+  const scalar_t lim_y_pos = (h_img - cy) / fy + band * tan_y, lim_y_neg = cy / fy + band * tan_y;
+  t.j00 = fx * t.inv_z;
+  t.j11 = fy * t.inv_z;
+  t.u_c = std::min(std::max(u, -lim_x_neg), lim_x_pos);
+  t.v_c = std::min(std::max(v, -lim_y_neg), lim_y_pos);
+  t.j02 = -t.j00 * t.u_c;
+  t.j12 = -t.j11 * t.v_c;
+  t.u_free = u >= -lim_x_neg && u <= lim_x_pos;
+  t.v_free = v >= -lim_y_neg && v <= lim_y_pos;
+  for (int j = 0; j < 3; ++j) {
+    t.a0[j] = t.j00 * view[j] + t.j02 * view[8 + j];
+    t.a1[j] = t.j11 * view[4 + j] + t.j12 * view[8 + j];
+  }
+  t.inv_norm = scalar_t(1) / std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+  for (int j = 0; j < 4; ++j) t.quat[j] = q[j] * t.inv_norm;
+  const scalar_t w = t.quat[0], x = t.quat[1], y = t.quat[2], z = t.quat[3];
+  const scalar_t xx = x * x, yy = y * y, zz = z * z, xy = x * y, xz = x * z, yz = y * z;
+  const scalar_t wx = w * x, wy = w * y, wz = w * z;
+  const scalar_t rot[3][3] = {{1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)},
+                              {2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)},
+                              {2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)}};
+  for (int j = 0; j < 3; ++j)
+    for (int c = 0; c < 3; ++c) {
+      t.rot[j][c] = rot[j][c];
+      t.m[j][c] = rot[j][c] * scale[c];
+    }
+  for (int c = 0; c < 3; ++c) {
+    t.row0[c] = t.a0[0] * t.m[0][c] + t.a0[1] * t.m[1][c] + t.a0[2] * t.m[2][c];
+    t.row1[c] = t.a1[0] * t.m[0][c] + t.a1[1] * t.m[1][c] + t.a1[2] * t.m[2][c];
+  }
+  const scalar_t eps = static_cast<scalar_t>(ps.eps2d);
+  t.cov_a = dot3(t.row0, t.row0) + eps;
+  t.cov_b = dot3(t.row0, t.row1);
+  t.cov_c = dot3(t.row1, t.row1) + eps;
+  t.det = t.cov_a * t.cov_c - t.cov_b * t.cov_b;
+  t.valid = t.in_range && t.det > 0;
+  t.inv_det = scalar_t(1) / (t.valid ? t.det : scalar_t(1));
+}
+
+// Outputs: means2d [C, N, 2], conics [C, N, 3], depths [C, N], radii [C, N] (0 = culled).
+template <typename scalar_t>
+void project_forward_all(const scalar_t* means, const scalar_t* quats, const scalar_t* scales, const scalar_t* views,
+                         const scalar_t* ks, int64_t n_cams, int64_t n, const ProjectSettings& ps, int threads,
+                         scalar_t* means2d, scalar_t* conics, scalar_t* depths, int32_t* radii) {
+#pragma omp parallel for schedule(static) num_threads(threads)
+  for (int64_t g = 0; g < n; ++g) {
+    ProjTerms<scalar_t> t;
+    for (int64_t c = 0; c < n_cams; ++c) {
+      const int64_t i = c * n + g;
+      project_one(views + 16 * c, ks + 9 * c, means + 3 * g, quats + 4 * g, scales + 3 * g, ps, t);
+      means2d[2 * i] = t.mx;
+      means2d[2 * i + 1] = t.my;
+      conics[3 * i] = t.cov_c * t.inv_det;
+      conics[3 * i + 1] = -t.cov_b * t.inv_det;
+      conics[3 * i + 2] = t.cov_a * t.inv_det;
+      depths[i] = t.z;
+      const scalar_t half_trace = scalar_t(0.5) * (t.cov_a + t.cov_c);
+      const scalar_t major =
+          half_trace + std::sqrt(std::max(half_trace * half_trace - t.det, static_cast<scalar_t>(kMinDiscriminant)));
+      const scalar_t radius = std::ceil(static_cast<scalar_t>(kRadiusSigmas) * std::sqrt(major));
+      const bool on_screen = (t.mx + radius > 0) && (t.mx - radius < ps.width) && (t.my + radius > 0) &&
+                             (t.my - radius < ps.height);
+      radii[i] = (t.valid && on_screen && radius > 0) ? static_cast<int32_t>(radius) : 0;
+    }
+  }
+}
+
+// Gradients: g_means [N, 3], g_quats [N, 4], g_scales [N, 3] (overwritten), g_views [C, 4, 4]
+// (zero-filled by the caller; rows 0-2 written). The view-matrix sums run per thread in double.
+template <typename scalar_t>
+void project_backward_all(const scalar_t* means, const scalar_t* quats, const scalar_t* scales, const scalar_t* views,
+                          const scalar_t* ks, int64_t n_cams, int64_t n, const ProjectSettings& ps, int threads,
+                          const scalar_t* g_means2d, const scalar_t* g_conics, const scalar_t* g_depths,
+                          scalar_t* g_means, scalar_t* g_quats, scalar_t* g_scales, scalar_t* g_views) {
+  std::vector<double> view_sums(n_cams * 12, 0.0);
+#pragma omp parallel num_threads(threads)
+  {
+    std::vector<double> mine(n_cams * 12, 0.0);
+#pragma omp for schedule(static)
+    for (int64_t g = 0; g < n; ++g) {
+      ProjTerms<scalar_t> t;
+      scalar_t g_m[3][3] = {{0, 0, 0}, {0, 0, 0}, {0, 0, 0}}, g_mean[3] = {0, 0, 0};
+      for (int64_t c = 0; c < n_cams; ++c) {
+        const int64_t i = c * n + g;
+        const scalar_t* view = views + 16 * c;
+        const scalar_t* mean = means + 3 * g;
+        project_one(view, ks + 9 * c, mean, quats + 4 * g, scales + 3 * g, ps, t);
+        const scalar_t fx = ks[9 * c], fy = ks[9 * c + 4];
+        // conics = (c, -b, a) / det  (det frozen to 1 where invalid)
+        const scalar_t gc0 = g_conics[3 * i], gc1 = g_conics[3 * i + 1], gc2 = g_conics[3 * i + 2];
+        const scalar_t inv_det = t.inv_det;
+        scalar_t s = (gc0 * t.cov_c - gc1 * t.cov_b + gc2 * t.cov_a) * inv_det * inv_det;
+        s = t.valid ? s : scalar_t(0);
+        const scalar_t g_a = gc2 * inv_det - s * t.cov_c;
+        const scalar_t g_c = gc0 * inv_det - s * t.cov_a;
+        const scalar_t g_b = 2 * s * t.cov_b - gc1 * inv_det;
+        // cov = (A M)(A M)^T
+        scalar_t g_row0[3], g_row1[3], g_a0[3], g_a1[3];
+        for (int k = 0; k < 3; ++k) {
+          g_row0[k] = 2 * g_a * t.row0[k] + g_b * t.row1[k];
+          g_row1[k] = 2 * g_c * t.row1[k] + g_b * t.row0[k];
+        }
+        for (int j = 0; j < 3; ++j) {
+          g_a0[j] = dot3(g_row0, t.m[j]);
+          g_a1[j] = dot3(g_row1, t.m[j]);
+          for (int k = 0; k < 3; ++k) g_m[j][k] += t.a0[j] * g_row0[k] + t.a1[j] * g_row1[k];
+        }
+        // A = J R_view
+        const scalar_t* r0 = view;
+        const scalar_t* r1 = view + 4;
+        const scalar_t* r2 = view + 8;
+        const scalar_t g_j00 = dot3(g_a0, r0), g_j02 = dot3(g_a0, r2);
+        const scalar_t g_j11 = dot3(g_a1, r1), g_j12 = dot3(g_a1, r2);
+        double* vs = &mine[12 * c];
+        for (int j = 0; j < 3; ++j) {
+          vs[j] += g_a0[j] * t.j00;
+          vs[4 + j] += g_a1[j] * t.j11;
+          vs[8 + j] += g_a0[j] * t.j02 + g_a1[j] * t.j12;
+        }
+        // J: j00 = fx / z, j02 = -j00 clamp(u), j11 = fy / z, j12 = -j11 clamp(v)
+        scalar_t g_inv_z = fx * (g_j00 - g_j02 * t.u_c) + fy * (g_j11 - g_j12 * t.v_c);
+        const scalar_t g_u = (t.u_free ? -g_j02 * t.j00 : scalar_t(0)) + fx * g_means2d[2 * i];
+        const scalar_t g_v = (t.v_free ? -g_j12 * t.j11 : scalar_t(0)) + fy * g_means2d[2 * i + 1];
+        const scalar_t g_x = g_u * t.inv_z, g_y = g_v * t.inv_z;
+        g_inv_z += g_u * t.x + g_v * t.y;
+        const scalar_t g_z = (t.in_range ? -g_inv_z * t.inv_z * t.inv_z : scalar_t(0)) + g_depths[i];
+        // camera position p = R_view m + t
+        const scalar_t g_p[3] = {g_x, g_y, g_z};
+        for (int j = 0; j < 3; ++j) g_mean[j] += g_p[0] * r0[j] + g_p[1] * r1[j] + g_p[2] * r2[j];
+        for (int r = 0; r < 3; ++r) {
+          vs[4 * r + 3] += g_p[r];
+          for (int j = 0; j < 3; ++j) vs[4 * r + j] += g_p[r] * mean[j];
+        }
+      }
+      for (int j = 0; j < 3; ++j) g_means[3 * g + j] = g_mean[j];
+      // M = R_gauss diag(s)
+      const scalar_t* scale = scales + 3 * g;
+      scalar_t g_r[3][3];
+      for (int k = 0; k < 3; ++k) {
+        g_scales[3 * g + k] = g_m[0][k] * t.rot[0][k] + g_m[1][k] * t.rot[1][k] + g_m[2][k] * t.rot[2][k];
+        for (int j = 0; j < 3; ++j) g_r[j][k] = g_m[j][k] * scale[k];
+      }
+      const scalar_t w = t.quat[0], x = t.quat[1], y = t.quat[2], z = t.quat[3];
+      const scalar_t s01 = g_r[0][1] + g_r[1][0], s02 = g_r[0][2] + g_r[2][0], s12 = g_r[1][2] + g_r[2][1];
+      const scalar_t a10 = g_r[1][0] - g_r[0][1], a02 = g_r[0][2] - g_r[2][0], a21 = g_r[2][1] - g_r[1][2];
+      const scalar_t gq[4] = {2 * (z * a10 + y * a02 + x * a21),
+                              2 * (y * s01 + z * s02 + w * a21) - 4 * x * (g_r[1][1] + g_r[2][2]),
+                              2 * (x * s01 + w * a02 + z * s12) - 4 * y * (g_r[0][0] + g_r[2][2]),
+                              2 * (w * a10 + x * s02 + y * s12) - 4 * z * (g_r[0][0] + g_r[1][1])};
+      // q_hat = q / |q|: the gradient loses its radial part
+      const scalar_t radial = w * gq[0] + x * gq[1] + y * gq[2] + z * gq[3];
+      for (int j = 0; j < 4; ++j) g_quats[4 * g + j] = (gq[j] - t.quat[j] * radial) * t.inv_norm;
+    }
+#pragma omp critical
+    for (int64_t j = 0; j < n_cams * 12; ++j) view_sums[j] += mine[j];
+  }
+  for (int64_t c = 0; c < n_cams; ++c)
+    for (int j = 0; j < 12; ++j) g_views[16 * c + j] = static_cast<scalar_t>(view_sums[12 * c + j]);
+}
+
 }  // namespace
 
 #ifdef RASTER_KERNELS_ONLY
@@ -775,9 +981,73 @@ std::vector<at::Tensor> rasterize_backward(const at::Tensor& means2d, const at::
   });
 }
 
+namespace {
+
+ProjectSettings project_settings(const std::vector<double>& v) {
+  TORCH_CHECK(v.size() == 5, "raster_cpu: projection settings are width, height, near, far, eps2d");
+  return ProjectSettings{static_cast<int>(v[0]), static_cast<int>(v[1]), v[2], v[3], v[4]};
+}
+
+void check_projection_inputs(const at::Tensor& means, const std::vector<at::Tensor>& others) {
+  TORCH_CHECK(means.device().is_cpu() && means.is_contiguous(), "raster_cpu: means must be a contiguous CPU tensor");
+  TORCH_CHECK(means.scalar_type() == at::kFloat || means.scalar_type() == at::kDouble,
+              "raster_cpu: float32 or float64 only, got ", means.scalar_type());
+  for (const at::Tensor& t : others)
+    TORCH_CHECK(t.device().is_cpu() && t.is_contiguous() && t.scalar_type() == means.scalar_type(),
+                "raster_cpu: projection inputs must be contiguous CPU tensors of one dtype");
+}
+
+}  // namespace
+
+// means [N, 3], quats [N, 4], scales [N, 3], viewmats [C, 4, 4], Ks [C, 3, 3]; settings: width,
+// height, near, far, eps2d. Returns means2d [C, N, 2], conics [C, N, 3], depths [C, N], radii [C, N].
+std::vector<at::Tensor> project_forward(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                                        const at::Tensor& viewmats, const at::Tensor& ks,
+                                        const std::vector<double>& settings) {
+  check_projection_inputs(means, {quats, scales, viewmats, ks});
+  const ProjectSettings ps = project_settings(settings);
+  const int64_t n = means.size(0), n_cams = viewmats.size(0);
+  TORCH_CHECK(n_cams > 0, "raster_cpu: at least one camera");
+  at::Tensor means2d = at::empty({n_cams, n, 2}, means.options());
+  at::Tensor conics = at::empty({n_cams, n, 3}, means.options());
+  at::Tensor depths = at::empty({n_cams, n}, means.options());
+  at::Tensor radii = at::empty({n_cams, n}, means.options().dtype(at::kInt));
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_forward", [&] {
+    project_forward_all<scalar_t>(means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(), scales.data_ptr<scalar_t>(),
+                                  viewmats.data_ptr<scalar_t>(), ks.data_ptr<scalar_t>(), n_cams, n, ps,
+                                  at::get_num_threads(), means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                                  depths.data_ptr<scalar_t>(), radii.data_ptr<int32_t>());
+  });
+  return {means2d, conics, depths, radii};
+}
+
+// Gradients of project_forward's means2d, conics and depths to means, quats, scales and viewmats.
+std::vector<at::Tensor> project_backward(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                                         const at::Tensor& viewmats, const at::Tensor& ks,
+                                         const std::vector<double>& settings, const at::Tensor& g_means2d,
+                                         const at::Tensor& g_conics, const at::Tensor& g_depths) {
+  check_projection_inputs(means, {quats, scales, viewmats, ks, g_means2d, g_conics, g_depths});
+  const ProjectSettings ps = project_settings(settings);
+  const int64_t n = means.size(0), n_cams = viewmats.size(0);
+  TORCH_CHECK(n_cams > 0, "raster_cpu: at least one camera");
+  at::Tensor g_means = at::empty_like(means), g_quats = at::empty_like(quats), g_scales = at::empty_like(scales);
+  at::Tensor g_views = at::zeros_like(viewmats);
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_backward", [&] {
+    project_backward_all<scalar_t>(
+        means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(), scales.data_ptr<scalar_t>(),
+        viewmats.data_ptr<scalar_t>(), ks.data_ptr<scalar_t>(), n_cams, n, ps, at::get_num_threads(),
+        g_means2d.data_ptr<scalar_t>(), g_conics.data_ptr<scalar_t>(), g_depths.data_ptr<scalar_t>(),
+        g_means.data_ptr<scalar_t>(), g_quats.data_ptr<scalar_t>(), g_scales.data_ptr<scalar_t>(),
+        g_views.data_ptr<scalar_t>());
+  });
+  return {g_means, g_quats, g_scales, g_views};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &rasterize_forward, "tile binning and compositing (CPU)");
   m.def("backward", &rasterize_backward, "gradients of rasterize_forward's first output (CPU)");
+  m.def("project_forward", &project_forward, "EWA projection of 3D Gaussians (CPU)");
+  m.def("project_backward", &project_backward, "gradients of project_forward (CPU)");
 }
 
 #endif  // RASTER_KERNELS_ONLY
