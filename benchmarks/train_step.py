@@ -116,7 +116,8 @@ def time_steps(trainer, stop: int, clock: Clock) -> List[Dict[str, float]]:
 
     real_select = edygs_model.select_backend
     edygs_model.select_backend = lambda *a, **k: clock.wrap("render fwd", real_select(*a, **k))
-    for fn_class in (cpu_backend._CompiledRaster, torch_backend._Rasterize, projection._ProjectGaussians):
+    for fn_class in (cpu_backend._CompiledRaster, cpu_backend._CompiledProjection, torch_backend._Rasterize,
+                     projection._ProjectGaussians):
         fn_class.backward = staticmethod(clock.wrap("render bwd", fn_class.backward))
     model, pipeline = trainer.pipeline.model, trainer.pipeline
     model.deformation.forward = clock.wrap("MLP fwd", model.deformation.forward)

@@ -27,7 +27,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 SOURCE = Path(__file__).with_name("csrc") / "raster_cpu.cpp"
 #: compiler flags: optimised, vectorised for this CPU, OpenMP over tiles; no FP traps, so the
 #: compiler may evaluate both sides of a select (else the backward loop stays scalar).
-CFLAGS = ("-O3", "-march=native", "-fno-trapping-math", "-fopenmp")
+CFLAGS = ("-O3", "-march=native", "-fno-trapping-math", "-fno-math-errno", "-fopenmp")
 LDFLAGS = ("-fopenmp",)
 #: environment variable that disables the compiled backend ("1": use the torch rasteriser).
 DISABLE_ENV = "EDYGS_NO_COMPILED_RASTERIZER"

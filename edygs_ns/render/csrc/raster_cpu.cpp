@@ -655,7 +655,7 @@ constexpr double kFovGuardBand = 0.3;     // projection.FOV_GUARD_BAND
 template <typename scalar_t>
 struct ProjTerms {
   scalar_t x, y, z, inv_z, u_c, v_c, j00, j02, j11, j12;
-  bool in_range, u_free, v_free, valid;
+  int in_range, u_free, v_free, valid;  // 0 or 1
   scalar_t a0[3], a1[3], rot[3][3], quat[4], inv_norm, m[3][3], row0[3], row1[3];
   scalar_t cov_a, cov_b, cov_c, det, inv_det, mx, my;
 };
@@ -667,13 +667,13 @@ inline scalar_t dot3(const scalar_t* a, const scalar_t* b) {
 
 // view: world-to-camera [4, 4] row-major; k: [3, 3]; mean [3], quat [4] (wxyz), scale [3].
 template <typename scalar_t>
-inline void project_one(const scalar_t* view, const scalar_t* k, const scalar_t* mean, const scalar_t* q,
+__attribute__((always_inline)) inline void project_one(const scalar_t* view, const scalar_t* k, const scalar_t* mean, const scalar_t* q,
                         const scalar_t* scale, const ProjectSettings& ps, ProjTerms<scalar_t>& t) {
   const scalar_t w_img = ps.width, h_img = ps.height;
   t.x = view[0] * mean[0] + view[1] * mean[1] + view[2] * mean[2] + view[3];
   t.y = view[4] * mean[0] + view[5] * mean[1] + view[6] * mean[2] + view[7];
   t.z = view[8] * mean[0] + view[9] * mean[1] + view[10] * mean[2] + view[11];
-  t.in_range = t.z >= static_cast<scalar_t>(ps.near_plane) && t.z <= static_cast<scalar_t>(ps.far_plane);
+  t.in_range = (t.z >= static_cast<scalar_t>(ps.near_plane)) & (t.z <= static_cast<scalar_t>(ps.far_plane));
   const scalar_t z_safe = t.in_range ? t.z : scalar_t(1);
   const scalar_t fx = k[0], fy = k[4], cx = k[2], cy = k[5];
   t.inv_z = scalar_t(1) / z_safe;
@@ -690,8 +690,8 @@ inline void project_one(const scalar_t* view, const scalar_t* k, const scalar_t*
   t.v_c = std::min(std::max(v, -lim_y_neg), lim_y_pos);
   t.j02 = -t.j00 * t.u_c;
   t.j12 = -t.j11 * t.v_c;
-  t.u_free = u >= -lim_x_neg && u <= lim_x_pos;
-  t.v_free = v >= -lim_y_neg && v <= lim_y_pos;
+  t.u_free = (u >= -lim_x_neg) & (u <= lim_x_pos);
+  t.v_free = (v >= -lim_y_neg) & (v <= lim_y_pos);
   for (int j = 0; j < 3; ++j) {
     t.a0[j] = t.j00 * view[j] + t.j02 * view[8 + j];
     t.a1[j] = t.j11 * view[4 + j] + t.j12 * view[8 + j];
@@ -718,21 +718,32 @@ inline void project_one(const scalar_t* view, const scalar_t* k, const scalar_t*
   t.cov_b = dot3(t.row0, t.row1);
   t.cov_c = dot3(t.row1, t.row1) + eps;
   t.det = t.cov_a * t.cov_c - t.cov_b * t.cov_b;
-  t.valid = t.in_range && t.det > 0;
+  t.valid = t.in_range & (t.det > 0);
   t.inv_det = scalar_t(1) / (t.valid ? t.det : scalar_t(1));
 }
 
 // Outputs: means2d [C, N, 2], conics [C, N, 3], depths [C, N], radii [C, N] (0 = culled).
+// Per camera one loop over the Gaussians that the compiler vectorises.
 template <typename scalar_t>
 void project_forward_all(const scalar_t* means, const scalar_t* quats, const scalar_t* scales, const scalar_t* views,
-                         const scalar_t* ks, int64_t n_cams, int64_t n, const ProjectSettings& ps, int threads,
+                         const scalar_t* ks, int64_t n_cams, int64_t n, const ProjectSettings ps, int threads,
                          scalar_t* means2d, scalar_t* conics, scalar_t* depths, int32_t* radii) {
-#pragma omp parallel for schedule(static) num_threads(threads)
-  for (int64_t g = 0; g < n; ++g) {
-    ProjTerms<scalar_t> t;
-    for (int64_t c = 0; c < n_cams; ++c) {
+  const scalar_t width = ps.width, height = ps.height;
+  for (int64_t c = 0; c < n_cams; ++c) {
+#pragma omp parallel num_threads(threads)
+  {
+    // the camera as thread-private locals (kept in registers; shared ones are re-read per lane)
+    scalar_t view[16], k[9];
+    std::copy(views + 16 * c, views + 16 * (c + 1), view);
+    std::copy(ks + 9 * c, ks + 9 * (c + 1), k);
+#pragma omp for simd schedule(static)
+    for (int64_t g = 0; g < n; ++g) {
+      ProjTerms<scalar_t> t;
       const int64_t i = c * n + g;
-      project_one(views + 16 * c, ks + 9 * c, means + 3 * g, quats + 4 * g, scales + 3 * g, ps, t);
+      const scalar_t mean[3] = {means[3 * g], means[3 * g + 1], means[3 * g + 2]};
+      const scalar_t quat[4] = {quats[4 * g], quats[4 * g + 1], quats[4 * g + 2], quats[4 * g + 3]};
+      const scalar_t scale[3] = {scales[3 * g], scales[3 * g + 1], scales[3 * g + 2]};
+      project_one(view, k, mean, quat, scale, ps, t);
       means2d[2 * i] = t.mx;
       means2d[2 * i + 1] = t.my;
       conics[3 * i] = t.cov_c * t.inv_det;
@@ -743,104 +754,126 @@ void project_forward_all(const scalar_t* means, const scalar_t* quats, const sca
       const scalar_t major =
           half_trace + std::sqrt(std::max(half_trace * half_trace - t.det, static_cast<scalar_t>(kMinDiscriminant)));
       const scalar_t radius = std::ceil(static_cast<scalar_t>(kRadiusSigmas) * std::sqrt(major));
-      const bool on_screen = (t.mx + radius > 0) && (t.mx - radius < ps.width) && (t.my + radius > 0) &&
-                             (t.my - radius < ps.height);
-      radii[i] = (t.valid && on_screen && radius > 0) ? static_cast<int32_t>(radius) : 0;
+      const bool on_screen = (t.mx + radius > 0) & (t.mx - radius < width) & (t.my + radius > 0) &
+                             (t.my - radius < height);
+      radii[i] = (t.valid & on_screen & (radius > 0)) ? static_cast<int32_t>(radius) : 0;
     }
+  }
   }
 }
 
 // Gradients: g_means [N, 3], g_quats [N, 4], g_scales [N, 3] (overwritten), g_views [C, 4, 4]
-// (zero-filled by the caller; rows 0-2 written). The view-matrix sums run per thread in double.
+// (zero-filled by the caller; rows 0-2 written). Per camera one vectorised loop over the
+// Gaussians adds into per-Gaussian sums of dL/dM and dL/d(mean) (scratch, one row per entry) and
+// reduces the view-matrix terms in double; then one loop turns dL/dM into scales and quaternions.
 template <typename scalar_t>
 void project_backward_all(const scalar_t* means, const scalar_t* quats, const scalar_t* scales, const scalar_t* views,
-                          const scalar_t* ks, int64_t n_cams, int64_t n, const ProjectSettings& ps, int threads,
+                          const scalar_t* ks, int64_t n_cams, int64_t n, const ProjectSettings ps, int threads,
                           const scalar_t* g_means2d, const scalar_t* g_conics, const scalar_t* g_depths,
                           scalar_t* g_means, scalar_t* g_quats, scalar_t* g_scales, scalar_t* g_views) {
-  std::vector<double> view_sums(n_cams * 12, 0.0);
-#pragma omp parallel num_threads(threads)
-  {
-    std::vector<double> mine(n_cams * 12, 0.0);
-#pragma omp for schedule(static)
+  std::vector<scalar_t> scratch(12 * std::max<int64_t>(n, 1), scalar_t(0));
+  scalar_t* gm_rows = scratch.data();  // [9, N] dL/dM (M = R diag(s)), row 3 j + k
+  scalar_t* gp_rows = gm_rows + 9 * n;  // [3, N] dL/d(mean)
+  for (int64_t c = 0; c < n_cams; ++c) {
+    scalar_t view[16], k[9];
+    std::copy(views + 16 * c, views + 16 * (c + 1), view);
+    std::copy(ks + 9 * c, ks + 9 * (c + 1), k);
+    const scalar_t fx = k[0], fy = k[4];
+    const scalar_t* r0 = view;
+    const scalar_t* r1 = view + 4;
+    const scalar_t* r2 = view + 8;
+    double v00 = 0, v01 = 0, v02 = 0, v03 = 0, v10 = 0, v11 = 0, v12 = 0, v13 = 0, v20 = 0, v21 = 0, v22 = 0, v23 = 0;
+#pragma omp parallel for simd schedule(static) num_threads(threads) \
+    reduction(+ : v00, v01, v02, v03, v10, v11, v12, v13, v20, v21, v22, v23)
     for (int64_t g = 0; g < n; ++g) {
       ProjTerms<scalar_t> t;
-      scalar_t g_m[3][3] = {{0, 0, 0}, {0, 0, 0}, {0, 0, 0}}, g_mean[3] = {0, 0, 0};
-      for (int64_t c = 0; c < n_cams; ++c) {
-        const int64_t i = c * n + g;
-        const scalar_t* view = views + 16 * c;
-        const scalar_t* mean = means + 3 * g;
-        project_one(view, ks + 9 * c, mean, quats + 4 * g, scales + 3 * g, ps, t);
-        const scalar_t fx = ks[9 * c], fy = ks[9 * c + 4];
-        // conics = (c, -b, a) / det  (det frozen to 1 where invalid)
-        const scalar_t gc0 = g_conics[3 * i], gc1 = g_conics[3 * i + 1], gc2 = g_conics[3 * i + 2];
-        const scalar_t inv_det = t.inv_det;
-        scalar_t s = (gc0 * t.cov_c - gc1 * t.cov_b + gc2 * t.cov_a) * inv_det * inv_det;
-        s = t.valid ? s : scalar_t(0);
-        const scalar_t g_a = gc2 * inv_det - s * t.cov_c;
-        const scalar_t g_c = gc0 * inv_det - s * t.cov_a;
-        const scalar_t g_b = 2 * s * t.cov_b - gc1 * inv_det;
-        // cov = (A M)(A M)^T
-        scalar_t g_row0[3], g_row1[3], g_a0[3], g_a1[3];
-        for (int k = 0; k < 3; ++k) {
-          g_row0[k] = 2 * g_a * t.row0[k] + g_b * t.row1[k];
-          g_row1[k] = 2 * g_c * t.row1[k] + g_b * t.row0[k];
-        }
-        for (int j = 0; j < 3; ++j) {
-          g_a0[j] = dot3(g_row0, t.m[j]);
-          g_a1[j] = dot3(g_row1, t.m[j]);
-          for (int k = 0; k < 3; ++k) g_m[j][k] += t.a0[j] * g_row0[k] + t.a1[j] * g_row1[k];
-        }
-        // A = J R_view
-        const scalar_t* r0 = view;
-        const scalar_t* r1 = view + 4;
-        const scalar_t* r2 = view + 8;
-        const scalar_t g_j00 = dot3(g_a0, r0), g_j02 = dot3(g_a0, r2);
-        const scalar_t g_j11 = dot3(g_a1, r1), g_j12 = dot3(g_a1, r2);
-        double* vs = &mine[12 * c];
-        for (int j = 0; j < 3; ++j) {
-          vs[j] += g_a0[j] * t.j00;
-          vs[4 + j] += g_a1[j] * t.j11;
-          vs[8 + j] += g_a0[j] * t.j02 + g_a1[j] * t.j12;
-        }
-        // J: j00 = fx / z, j02 = -j00 clamp(u), j11 = fy / z, j12 = -j11 clamp(v)
-        scalar_t g_inv_z = fx * (g_j00 - g_j02 * t.u_c) + fy * (g_j11 - g_j12 * t.v_c);
-        const scalar_t g_u = (t.u_free ? -g_j02 * t.j00 : scalar_t(0)) + fx * g_means2d[2 * i];
-        const scalar_t g_v = (t.v_free ? -g_j12 * t.j11 : scalar_t(0)) + fy * g_means2d[2 * i + 1];
-        const scalar_t g_x = g_u * t.inv_z, g_y = g_v * t.inv_z;
-        g_inv_z += g_u * t.x + g_v * t.y;
-        const scalar_t g_z = (t.in_range ? -g_inv_z * t.inv_z * t.inv_z : scalar_t(0)) + g_depths[i];
-        // camera position p = R_view m + t
-        const scalar_t g_p[3] = {g_x, g_y, g_z};
-        for (int j = 0; j < 3; ++j) g_mean[j] += g_p[0] * r0[j] + g_p[1] * r1[j] + g_p[2] * r2[j];
-        for (int r = 0; r < 3; ++r) {
-          vs[4 * r + 3] += g_p[r];
-          for (int j = 0; j < 3; ++j) vs[4 * r + j] += g_p[r] * mean[j];
-        }
+      const int64_t i = c * n + g;
+      const scalar_t mean[3] = {means[3 * g], means[3 * g + 1], means[3 * g + 2]};
+      const scalar_t quat[4] = {quats[4 * g], quats[4 * g + 1], quats[4 * g + 2], quats[4 * g + 3]};
+      const scalar_t scale[3] = {scales[3 * g], scales[3 * g + 1], scales[3 * g + 2]};
+      project_one(view, k, mean, quat, scale, ps, t);
+      // conics = (c, -b, a) / det  (det frozen to 1 where invalid)
+      const scalar_t gc0 = g_conics[3 * i], gc1 = g_conics[3 * i + 1], gc2 = g_conics[3 * i + 2];
+      const scalar_t inv_det = t.inv_det;
+      scalar_t s = (gc0 * t.cov_c - gc1 * t.cov_b + gc2 * t.cov_a) * inv_det * inv_det;
+      s = t.valid ? s : scalar_t(0);
+      const scalar_t g_a = gc2 * inv_det - s * t.cov_c;
+      const scalar_t g_c = gc0 * inv_det - s * t.cov_a;
+      const scalar_t g_b = 2 * s * t.cov_b - gc1 * inv_det;
+      // cov = (A M)(A M)^T
+      scalar_t g_row0[3], g_row1[3], g_a0[3], g_a1[3];
+      for (int q = 0; q < 3; ++q) {
+        g_row0[q] = 2 * g_a * t.row0[q] + g_b * t.row1[q];
+        g_row1[q] = 2 * g_c * t.row1[q] + g_b * t.row0[q];
       }
-      for (int j = 0; j < 3; ++j) g_means[3 * g + j] = g_mean[j];
-      // M = R_gauss diag(s)
-      const scalar_t* scale = scales + 3 * g;
-      scalar_t g_r[3][3];
-      for (int k = 0; k < 3; ++k) {
-        g_scales[3 * g + k] = g_m[0][k] * t.rot[0][k] + g_m[1][k] * t.rot[1][k] + g_m[2][k] * t.rot[2][k];
-        for (int j = 0; j < 3; ++j) g_r[j][k] = g_m[j][k] * scale[k];
+      for (int j = 0; j < 3; ++j) {
+        g_a0[j] = dot3(g_row0, t.m[j]);
+        g_a1[j] = dot3(g_row1, t.m[j]);
+        for (int q = 0; q < 3; ++q) gm_rows[(3 * j + q) * n + g] += t.a0[j] * g_row0[q] + t.a1[j] * g_row1[q];
       }
-      const scalar_t w = t.quat[0], x = t.quat[1], y = t.quat[2], z = t.quat[3];
-      const scalar_t s01 = g_r[0][1] + g_r[1][0], s02 = g_r[0][2] + g_r[2][0], s12 = g_r[1][2] + g_r[2][1];
-      const scalar_t a10 = g_r[1][0] - g_r[0][1], a02 = g_r[0][2] - g_r[2][0], a21 = g_r[2][1] - g_r[1][2];
-      const scalar_t gq[4] = {2 * (z * a10 + y * a02 + x * a21),
-                              2 * (y * s01 + z * s02 + w * a21) - 4 * x * (g_r[1][1] + g_r[2][2]),
-                              2 * (x * s01 + w * a02 + z * s12) - 4 * y * (g_r[0][0] + g_r[2][2]),
-                              2 * (w * a10 + x * s02 + y * s12) - 4 * z * (g_r[0][0] + g_r[1][1])};
-      // q_hat = q / |q|: the gradient loses its radial part
-      const scalar_t radial = w * gq[0] + x * gq[1] + y * gq[2] + z * gq[3];
-      for (int j = 0; j < 4; ++j) g_quats[4 * g + j] = (gq[j] - t.quat[j] * radial) * t.inv_norm;
+      // A = J R_view
+      const scalar_t g_j00 = dot3(g_a0, r0), g_j02 = dot3(g_a0, r2);
+      const scalar_t g_j11 = dot3(g_a1, r1), g_j12 = dot3(g_a1, r2);
+      // J: j00 = fx / z, j02 = -j00 clamp(u), j11 = fy / z, j12 = -j11 clamp(v)
+      scalar_t g_inv_z = fx * (g_j00 - g_j02 * t.u_c) + fy * (g_j11 - g_j12 * t.v_c);
+      const scalar_t g_u = (t.u_free ? -g_j02 * t.j00 : scalar_t(0)) + fx * g_means2d[2 * i];
+      const scalar_t g_v = (t.v_free ? -g_j12 * t.j11 : scalar_t(0)) + fy * g_means2d[2 * i + 1];
+      const scalar_t g_x = g_u * t.inv_z, g_y = g_v * t.inv_z;
+      g_inv_z += g_u * t.x + g_v * t.y;
+      const scalar_t g_z = (t.in_range ? -g_inv_z * t.inv_z * t.inv_z : scalar_t(0)) + g_depths[i];
+      // camera position p = R_view m + t
+      for (int j = 0; j < 3; ++j) gp_rows[j * n + g] += g_x * r0[j] + g_y * r1[j] + g_z * r2[j];
+      v00 += g_a0[0] * t.j00 + g_x * mean[0];
+      v01 += g_a0[1] * t.j00 + g_x * mean[1];
+      v02 += g_a0[2] * t.j00 + g_x * mean[2];
+      v03 += g_x;
+      v10 += g_a1[0] * t.j11 + g_y * mean[0];
+      v11 += g_a1[1] * t.j11 + g_y * mean[1];
+      v12 += g_a1[2] * t.j11 + g_y * mean[2];
+      v13 += g_y;
+      v20 += g_a0[0] * t.j02 + g_a1[0] * t.j12 + g_z * mean[0];
+      v21 += g_a0[1] * t.j02 + g_a1[1] * t.j12 + g_z * mean[1];
+      v22 += g_a0[2] * t.j02 + g_a1[2] * t.j12 + g_z * mean[2];
+      v23 += g_z;
     }
-#pragma omp critical
-    for (int64_t j = 0; j < n_cams * 12; ++j) view_sums[j] += mine[j];
+    const double sums[12] = {v00, v01, v02, v03, v10, v11, v12, v13, v20, v21, v22, v23};
+    for (int j = 0; j < 12; ++j) g_views[16 * c + j] = static_cast<scalar_t>(sums[j]);
   }
-  for (int64_t c = 0; c < n_cams; ++c)
-    for (int j = 0; j < 12; ++j) g_views[16 * c + j] = static_cast<scalar_t>(view_sums[12 * c + j]);
+#pragma omp parallel for simd schedule(static) num_threads(threads)
+  for (int64_t g = 0; g < n; ++g) {
+    const scalar_t* q = quats + 4 * g;
+    const scalar_t inv_norm = scalar_t(1) / std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+    const scalar_t w = q[0] * inv_norm, x = q[1] * inv_norm, y = q[2] * inv_norm, z = q[3] * inv_norm;
+    const scalar_t xx = x * x, yy = y * y, zz = z * z, xy = x * y, xz = x * z, yz = y * z;
+    const scalar_t wx = w * x, wy = w * y, wz = w * z;
+    const scalar_t rot[3][3] = {{1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)},
+                                {2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)},
+                                {2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)}};
+    const scalar_t* scale = scales + 3 * g;
+    scalar_t g_r[3][3];
+    for (int kk = 0; kk < 3; ++kk) {
+      scalar_t acc = 0;
+      for (int j = 0; j < 3; ++j) {
+        const scalar_t gmjk = gm_rows[(3 * j + kk) * n + g];
+        acc += gmjk * rot[j][kk];
+        g_r[j][kk] = gmjk * scale[kk];
+      }
+      g_scales[3 * g + kk] = acc;
+    }
+    for (int j = 0; j < 3; ++j) g_means[3 * g + j] = gp_rows[j * n + g];
+    const scalar_t s01 = g_r[0][1] + g_r[1][0], s02 = g_r[0][2] + g_r[2][0], s12 = g_r[1][2] + g_r[2][1];
+    const scalar_t a10 = g_r[1][0] - g_r[0][1], a02 = g_r[0][2] - g_r[2][0], a21 = g_r[2][1] - g_r[1][2];
+    const scalar_t gw = 2 * (z * a10 + y * a02 + x * a21);
+    const scalar_t gx = 2 * (y * s01 + z * s02 + w * a21) - 4 * x * (g_r[1][1] + g_r[2][2]);
+    const scalar_t gy = 2 * (x * s01 + w * a02 + z * s12) - 4 * y * (g_r[0][0] + g_r[2][2]);
+    const scalar_t gz = 2 * (w * a10 + x * s02 + y * s12) - 4 * z * (g_r[0][0] + g_r[1][1]);
+    // q_hat = q / |q|: the gradient loses its radial part
+    const scalar_t radial = w * gw + x * gx + y * gy + z * gz;
+    g_quats[4 * g] = (gw - w * radial) * inv_norm;
+    g_quats[4 * g + 1] = (gx - x * radial) * inv_norm;
+    g_quats[4 * g + 2] = (gy - y * radial) * inv_norm;
+    g_quats[4 * g + 3] = (gz - z * radial) * inv_norm;
+  }
 }
 
 }  // namespace
