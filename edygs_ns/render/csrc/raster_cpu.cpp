@@ -29,6 +29,9 @@
 #ifdef _OPENMP
 #include <omp.h>
 #endif
+#if defined(__AVX512F__)
+#include <immintrin.h>
+#endif
 
 namespace {
 
@@ -161,19 +164,42 @@ std::vector<int> fold_owner() {
 template <typename scalar_t>
 const std::vector<int> kFoldOwner = fold_owner<scalar_t>();
 
-// totals[k] = sum of the lanes of v[k], k < K.
+// Lane of the folded vector that holds input vector j's total (the inverse of kFoldOwner).
 template <typename scalar_t>
-inline void lane_totals(const VecOf<scalar_t>* v, int64_t K, scalar_t* totals) {
+std::vector<int> fold_slot() {
+  const std::vector<int> owner = fold_owner<scalar_t>();
+  std::vector<int> slot(owner.size());
+  for (size_t q = 0; q < owner.size(); ++q) slot[owner[q]] = static_cast<int>(q);
+  return slot;
+}
+template <typename scalar_t>
+const std::vector<int> kFoldSlot = fold_slot<scalar_t>();
+
+// Folds K vectors into ceil(K / L) vectors of totals and adds them to out: the total of v[j] goes
+// to lane kFoldSlot[j % L] of out[j / L].
+template <typename scalar_t>
+inline void fold_add(const VecOf<scalar_t>* v, int64_t K, VecOf<scalar_t>* out) {
   constexpr int L = Simd<scalar_t>::L;
-  const int* owner = kFoldOwner<scalar_t>.data();
   for (int64_t g0 = 0; g0 < K; g0 += L) {
     VecOf<scalar_t> w[L];
     for (int i = 0; i < L; ++i) w[i] = g0 + i < K ? v[g0 + i] : VecOf<scalar_t>{};
-    const VecOf<scalar_t> r = fold_all<scalar_t>(w);
-    for (int q = 0; q < L; ++q)
-      if (g0 + owner[q] < K) totals[g0 + owner[q]] = r[q];
+    out[g0 / L] += fold_all<scalar_t>(w);
   }
 }
+
+// 1 / x: on AVX-512 float lanes the 14-bit reciprocal estimate and one Newton step (relative
+// error ~1e-8, below float's rounding), which does not hold the divider for 10+ cycles; else a
+// division.
+inline Simd<float>::V reciprocal(Simd<float>::V x) {
+#if defined(__AVX512F__)
+  typedef Simd<float>::V V;
+  const V r = reinterpret_cast<V>(_mm512_rcp14_ps(reinterpret_cast<__m512>(x)));
+  return r * (2.0f - x * r);
+#else
+  return 1.0f / x;
+#endif
+}
+inline Simd<double>::V reciprocal(Simd<double>::V x) { return 1.0 / x; }
 
 // The Gaussian's exponent at offset (dx, dy) = pixel centre - mean; one expression for forward and
 // backward so both passes see the same alphas bit for bit.
@@ -434,18 +460,20 @@ void composite_tile(const Packed<scalar_t>& s, const int32_t* list, int32_t coun
     for (int l = 0; l < L; ++l) stop_out[q * L + l] = static_cast<int32_t>(stop[q][l]);
 }
 
-// Backward of one tile: per (Gaussian, tile) the pixel sums of d/d mean x, y, d/d conic a, b, c,
-// d/d log(opacity), d/d features, d/d depth (K = kHead + nc values) added into per[id * K].
+// Backward of one tile. Per (Gaussian, tile) the pixel sums S_j, j < K = kHead + nc, of g_pow (a dx
+// + b dy), g_pow (b dx + c dy), g_pow dx^2, g_pow dx dy, g_pow dy^2, g_pow (= dL/d log opacity) and
+// wi g_ch (features, depth), with g_pow = dL/d power; they are folded and added into the record's
+// G = ceil(K / L) vectors per[id * G ...] (see fold_add), which the caller turns into gradients.
 // g: [nc + 1][NCH] dL/d(acc); total: [NCH] g . acc (the gradient-weighted composite of every
-// Gaussian); stop: [P]; sf: [nc] vectors of scratch (the generic path's feature sums).
+// Gaussian); stop_in: [P]; scratch: [K] vectors (the generic path's sums).
 template <typename scalar_t, int TS, int NC>
 void backward_tile(const Packed<scalar_t>& s, const int32_t* list, int32_t count, int tx, int ty, const Rules& rules,
                    const VecOf<scalar_t>* g, const VecOf<scalar_t>* total, const int32_t* stop_in, const uint8_t* used,
-                   VecOf<scalar_t>* sf_scratch, scalar_t* per) {
+                   VecOf<scalar_t>* scratch, VecOf<scalar_t>* per) {
   typedef VecOf<scalar_t> V;
   typedef MaskOf<scalar_t> M;
   constexpr int L = Simd<scalar_t>::L, P = TS * TS, NCH = P / L, RPC = L / TS;
-  const int64_t stride = s.stride(), nc = channels<NC>(s.n_feat + 1), n_k = kHead + nc;
+  const int64_t stride = s.stride(), nc = channels<NC>(s.n_feat + 1), n_k = kHead + nc, groups = (n_k + L - 1) / L;
   const int xb = tx * TS, yb = ty * TS;
   V px[NCH], py[NCH], trans[NCH], prefix[NCH];
   M stop[NCH];
@@ -464,8 +492,9 @@ void backward_tile(const Packed<scalar_t>& s, const int32_t* list, int32_t count
   const scalar_t amax = rules.alpha_max, amin = rules.alpha_min;
   const V zero{}, one = V{} + scalar_t(1), v_amax = V{} + amax;
   const V* g_alpha_ch = g + nc * NCH;  // the alpha channel's feature is 1
-  V sf_fixed[NC > 0 ? NC : 1];
-  V* sf = NC > 0 ? sf_fixed : sf_scratch;
+  V sums_fixed[kHead + (NC > 0 ? NC : 0)];
+  V* sums = NC > 0 ? sums_fixed : scratch;
+  V* sf = sums + kHead;
   for (int32_t k = 0; k < std::min(last, count); ++k) {
     if (!used[k]) continue;  // composited nowhere in this tile: its gradients here are 0
     const int32_t id = list[k];
@@ -475,10 +504,7 @@ void backward_tile(const Packed<scalar_t>& s, const int32_t* list, int32_t count
     const scalar_t mx = rec[0], my = rec[1], a = rec[2], b = rec[3], c = rec[4], o = rec[5];
     const scalar_t* f = rec + kHead;
     const M kv = M{} + k;
-    V sums[kHead + (NC > 0 ? NC : 0)];  // d/d mean x, y, conic a, b, c, log opacity; fused features
-    V* sf = NC > 0 ? sums + kHead : sf_scratch;
-    for (int j = 0; j < kHead; ++j) sums[j] = V{};
-    for (int64_t ch = 0; ch < nc; ++ch) sf[ch] = V{};
+    for (int64_t j = 0; j < n_k; ++j) sums[j] = V{};
     for (int q = c0; q <= c1; ++q) {
       V hp = g_alpha_ch[q];
       for (int64_t ch = 0; ch < nc; ++ch) hp += g[ch * NCH + q] * f[ch];
@@ -491,7 +517,7 @@ void backward_tile(const Packed<scalar_t>& s, const int32_t* list, int32_t count
       const V wi = vis ? alpha * t : zero;
       const V pre = prefix[q] + wi * hp;
       prefix[q] = pre;
-      const V g_alpha = t * hp - (total[q] - pre) / (one - alpha);
+      const V g_alpha = t * hp - (total[q] - pre) * reciprocal(one - alpha);
       const V g_pow = (vis & unclamped) ? g_alpha * alpha : zero;
       trans[q] = vis ? t * (one - alpha) : t;
       sums[0] += g_pow * (a * dx + b * dy);
@@ -502,21 +528,7 @@ void backward_tile(const Packed<scalar_t>& s, const int32_t* list, int32_t count
       sums[5] += g_pow;
       for (int64_t ch = 0; ch < nc; ++ch) sf[ch] += wi * g[ch * NCH + q];
     }
-    scalar_t tot[kHead + (NC > 0 ? NC : 0)];
-    scalar_t* out = per + static_cast<int64_t>(id) * n_k;
-    if constexpr (NC > 0) {
-      lane_totals<scalar_t>(sums, kHead + NC, tot);
-      for (int ch = 0; ch < NC; ++ch) out[kHead + ch] += tot[kHead + ch];
-    } else {
-      lane_totals<scalar_t>(sums, kHead, tot);
-      for (int64_t ch = 0; ch < nc; ++ch) out[kHead + ch] += lane_sum(sf[ch]);
-    }
-    out[0] += tot[0];
-    out[1] += tot[1];
-    out[2] += scalar_t(-0.5) * tot[2];
-    out[3] -= tot[3];
-    out[4] += scalar_t(-0.5) * tot[4];
-    out[5] += tot[5];
+    fold_add<scalar_t>(sums, n_k, per + static_cast<int64_t>(id) * groups);
   }
 }
 
@@ -572,7 +584,8 @@ void backward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, c
   const int64_t n_k = kHead + d + 1;
   const int width = in.width, height = in.height;
   threads = std::max(1, std::min<int>(threads, static_cast<int>(std::min<int64_t>(in.n_cams * n_tiles, 1 << 20))));
-  std::vector<std::vector<scalar_t>> per_thread(threads);
+  const int64_t groups = (n_k + L - 1) / L;  // vectors per record in the sums
+  std::vector<std::vector<V>> per_thread(threads);
 #pragma omp parallel num_threads(threads)
   {
 #ifdef _OPENMP
@@ -580,9 +593,9 @@ void backward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, c
 #else
     const int me = 0;
 #endif
-    std::vector<scalar_t>& per = per_thread[me];
-    per.assign(std::max<int64_t>(m * n_k, 1), scalar_t(0));
-    std::vector<V> g(n_ch * NCH), total(NCH), sf(n_ch);
+    std::vector<V>& per = per_thread[me];
+    per.assign(std::max<int64_t>(m * groups, 1), V{});
+    std::vector<V> g(n_ch * NCH), total(NCH), scratch(n_k);
 #pragma omp for schedule(static, 1)
     for (int64_t t = 0; t < in.n_cams * n_tiles; ++t) {
       const int32_t count = static_cast<int32_t>(offsets[t + 1] - offsets[t]);
@@ -606,29 +619,31 @@ void backward_all(const Inputs<scalar_t>& in, const Rules& rules, int threads, c
         }
       }
       backward_tile<scalar_t, TS, NC>(s, ids + offsets[t], count, tx, ty, rules, g.data(), total.data(), stops + t * P,
-                                      used + offsets[t], sf.data(), per.data());
+                                      used + offsets[t], scratch.data(), per.data());
     }
   }
   // sum the threads' buffers (fixed order) and scatter per Gaussian
-  scalar_t* sum = per_thread[0].data();
+  V* sum = per_thread[0].data();
   for (int th = 1; th < threads; ++th) {
     if (per_thread[th].empty()) continue;  // OpenMP gave fewer threads
-    const scalar_t* other = per_thread[th].data();
+    const V* other = per_thread[th].data();
 #pragma omp parallel for schedule(static) num_threads(threads)
-    for (int64_t j = 0; j < m * n_k; ++j) sum[j] += other[j];
+    for (int64_t j = 0; j < m * groups; ++j) sum[j] += other[j];
   }
+  const int* slot = kFoldSlot<scalar_t>.data();
   for (int64_t r = 0; r < m; ++r) {
-    const scalar_t* src = &sum[r * n_k];
+    const V* row = &sum[r * groups];
+    auto at = [row, slot](int64_t j) { return row[j / L][slot[j % L]]; };
     const int64_t i = order[r], gi = i % in.n;
-    gm[2 * i] = src[0];
-    gm[2 * i + 1] = src[1];
-    gc[3 * i] = src[2];
-    gc[3 * i + 1] = src[3];
-    gc[3 * i + 2] = src[4];
-    go[gi] += src[5];  // d / d log(opacity) for now
+    gm[2 * i] = at(0);
+    gm[2 * i + 1] = at(1);
+    gc[3 * i] = scalar_t(-0.5) * at(2);  // power = -(a dx^2 + c dy^2) / 2 - b dx dy
+    gc[3 * i + 1] = -at(3);
+    gc[3 * i + 2] = scalar_t(-0.5) * at(4);
+    go[gi] += at(5);  // d / d log(opacity) for now
     scalar_t* dst = gf + (in.per_camera ? i : gi) * d;
-    for (int64_t k = 0; k < d; ++k) dst[k] += src[kHead + k];
-    gd[i] = src[kHead + d];
+    for (int64_t k = 0; k < d; ++k) dst[k] += at(kHead + k);
+    gd[i] = at(kHead + d);
   }
   const scalar_t min_o = static_cast<scalar_t>(rules.min_opacity);
   for (int64_t gi = 0; gi < in.n; ++gi) {
