@@ -6,7 +6,8 @@ cached under torch's extensions directory (``$TORCH_EXTENSIONS_DIR``, default
 ``~/.cache/torch_extensions``) and later processes load it in well under a second. It is built
 for the CPU it runs on (``-march=native``); the module name carries a hash of the CPU's model
 and instruction-set flags, so a cache shared by different machines holds one build per CPU kind
-instead of loading code with instructions the CPU lacks. See docs/cpu_rasterizer.md.
+instead of loading code with instructions the CPU lacks, and a hash of the source and flags, so
+processes running different versions of the source do not rebuild over each other. See docs/cpu_rasterizer.md.
 """
 
 from __future__ import annotations
@@ -45,9 +46,17 @@ def cpu_tag() -> str:
     return hashlib.sha1(text.encode()).hexdigest()[:10]
 
 
+def source_tag() -> str:
+    """Short hash of the kernel source and compiler flags."""
+    text = SOURCE.read_bytes() + " ".join(CFLAGS + LDFLAGS).encode()
+    return hashlib.sha1(text).hexdigest()[:8]
+
+
 def module_name() -> str:
-    """Extension name: one build per CPU kind (torch rebuilds it when the source or flags change)."""
-    return f"edygs_raster_cpu_{cpu_tag()}"
+    """Extension name: one build per CPU kind and per source version. Processes running different
+    versions of the source (another checkout, a long run started before an edit) each find their
+    own build in the cache instead of rebuilding over each other's."""
+    return f"edygs_raster_cpu_{cpu_tag()}_{source_tag()}"
 
 
 @functools.lru_cache(maxsize=1)
