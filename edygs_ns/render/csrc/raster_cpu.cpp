@@ -383,6 +383,16 @@ void pack_and_bin(const Inputs<scalar_t>& in, int tile, const Rules& rules, int 
   }
 }
 
+// How many list entries ahead the tile loops prefetch a record (the records of a tile list are
+// far apart in memory once the scene has many Gaussians).
+constexpr int kPrefetch = 4;
+
+template <typename scalar_t>
+inline void prefetch_record(const Packed<scalar_t>& s, int32_t id) {
+  __builtin_prefetch(&s.records[id * s.stride()]);
+  __builtin_prefetch(&s.rows[2 * id]);
+}
+
 // Number of composited feature channels (D features + depth) known at compile time: NC > 0 fuses
 // the channel loops (the common D = 3, 4); NC = 0 reads it at run time.
 template <int NC>
@@ -433,6 +443,7 @@ void composite_tile(const Packed<scalar_t>& s, const int32_t* list, int32_t coun
       if (!any_lane(live)) break;
     }
     const int32_t id = list[k];
+    if (k + kPrefetch < count) prefetch_record(s, list[k + kPrefetch]);
     const scalar_t* rec = &s.records[id * stride];
     int c0, c1;
     chunk_range<TS, RPC>(&s.rows[2 * id], yb, c0, c1);
@@ -498,6 +509,7 @@ void backward_tile(const Packed<scalar_t>& s, const int32_t* list, int32_t count
   for (int32_t k = 0; k < std::min(last, count); ++k) {
     if (!used[k]) continue;  // composited nowhere in this tile: its gradients here are 0
     const int32_t id = list[k];
+    if (k + kPrefetch < count) prefetch_record(s, list[k + kPrefetch]);
     const scalar_t* rec = &s.records[id * stride];
     int c0, c1;
     chunk_range<TS, RPC>(&s.rows[2 * id], yb, c0, c1);
