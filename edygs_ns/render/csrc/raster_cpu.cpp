@@ -100,12 +100,21 @@ inline auto lane_sum(const V& v) {
   return s;
 }
 
+// Whether any lane of a mask is set (64-byte masks; a bit cast, not a pointer pun, which GCC may
+// reorder against the vector's writes).
 template <typename M>
 inline bool any_lane(const M& m) {
-  const uint64_t* w = reinterpret_cast<const uint64_t*>(&m);
+  static_assert(sizeof(M) == 64, "64-byte masks");
+#if defined(__AVX512F__)
+  const __m512i v = (__m512i)m;
+  return _mm512_test_epi64_mask(v, v) != 0;
+#else
+  typedef uint64_t U __attribute__((vector_size(64)));
+  const U w = (U)m;
   uint64_t acc = 0;
   for (int i = 0; i < 8; ++i) acc |= w[i];
   return acc != 0;
+#endif
 }
 
 // Horizontal sums of many vectors at once: a tree of two-input shuffles ("fold") halves the lanes
@@ -525,6 +534,7 @@ void backward_tile(const Packed<scalar_t>& s, const int32_t* list, int32_t count
       const M unclamped = raw < v_amax;
       const V alpha = unclamped ? raw : v_amax;
       const M vis = (kv < stop[q]) & (alpha > amin);
+      if (!any_lane(vis)) continue;  // nothing composited here: no gradient, no change of state
       const V t = trans[q];
       const V wi = vis ? alpha * t : zero;
       const V pre = prefix[q] + wi * hp;
