@@ -1,12 +1,14 @@
-"""The compiled CPU rasteriser: torch projection, C++ binning and compositing (``csrc/raster_cpu.cpp``).
+"""The compiled CPU rasteriser: projection, tile binning and compositing in C++ (``csrc/raster_cpu.cpp``).
 
-Split: the per-Gaussian projection (``projection.py``, O(N), its hand-written backward) stays in
-torch, so gradients reach means, quaternions, scales and the world-to-camera matrices (pose
-refinement) exactly as in the reference; the per-pixel work (tile binning, front-to-back
-compositing of D features + depth + alpha, and its backward) is one autograd Function whose
-forward and backward are compiled loops, multi-threaded over tiles. The rules (tiles, alpha
-clamp and cut-off, transmittance stop) are those of ``torch_backend.py``, the reference the
-parity tests compare against. Why this split and toolchain: docs/cpu_rasterizer.md.
+Two autograd Functions, each with a compiled forward and backward, multi-threaded with OpenMP:
+the per-Gaussian EWA projection (``_CompiledProjection``: the expressions and rules of
+``projection.py``, closed-form backward to means, quaternions, scales and the world-to-camera
+matrices, so pose refinement works; the torch projection under autograd when Ks needs a
+gradient), and the per-pixel work (``_CompiledRaster``: tile binning, front-to-back compositing
+of D features + depth + alpha, and its backward). ``means2d`` stays the non-leaf tensor between
+the two whose ``.grad`` densification reads. The rules (tiles, alpha clamp and cut-off,
+transmittance stop) are those of ``torch_backend.py``, the reference the parity tests compare
+against. Why this split and toolchain: docs/cpu_rasterizer.md.
 """
 
 from __future__ import annotations
