@@ -596,7 +596,8 @@ class EdygsModel(SplatExportView):
         if cfg.use_edi_loss and cfg.use_motion_mask and is_active(LossName.EDI_STATIC, phase):
             losses["edi_static"] = cfg.lambda_edi_static * l1_dssim(rgb, gt, cfg.ssim_lambda, weight=1.0 - mask, image_weights=weights)
         linear = decode_to_linear(rgb, self.color_space)
-        if cfg.use_event_loss and is_active(LossName.EVENT, phase) and "event_map" in batch and rgb.dim() == 4 and rgb.shape[0] == 2:
+        pair = indices is not None and len(indices) == 2  # the two latents an event map joins
+        if cfg.use_event_loss and is_active(LossName.EVENT, phase) and "event_map" in batch and pair:
             event_map = batch["event_map"].to(self.device).float()
             losses["event"] = cfg.lambda_event * event_loss(linear[0], linear[1], event_map, self.theta, cfg.event_log_eps)
         if cfg.use_blur_loss and cfg.lambda_blur > 0 and is_active(LossName.BLUR, phase) and "blurry" in batch and indices is not None:
