@@ -98,6 +98,22 @@ def test_properties_are_the_gaussians_baked_at_the_fallback_time(monkeypatch):
     torch.testing.assert_close(model.colors, params["features_dc"] * 0.28209479177387814 + 0.5)
 
 
+def test_the_deformation_is_baked_once_per_export(monkeypatch):
+    model = _model()
+    calls = []
+    real = model.deformed_gaussians
+    monkeypatch.setattr(model, "deformed_gaussians", lambda *a, **k: calls.append(a) or real(*a, **k))
+    first = model.means
+    model.scales, model.quats, model.means
+    assert len(calls) == 1  # one bake serves every property ns-export reads
+    monkeypatch.setenv(TIME_ENV, "1.0")
+    assert not torch.equal(model.means, first) and len(calls) == 2  # another time: baked again
+    with torch.no_grad():
+        model.gauss_params["means"].add_(0.5)  # an optimiser step changes the parameters in place
+    torch.testing.assert_close(model.means, bake_gaussians(model, 1.0)["means"])
+    assert len(calls) == 4  # baked again (and once by the reference bake_gaussians)
+
+
 def test_time_comes_from_the_environment_then_the_config(monkeypatch):
     assert resolve_time(0.3) == 0.3
     monkeypatch.setenv(TIME_ENV, "0.75")

@@ -67,9 +67,7 @@ def _wrap(write_ply: Callable[..., Any]) -> Callable[..., Any]:
     def write_ply_with_mask(filename: str, count: int, map_to_tensors: "OrderedDict[str, np.ndarray]") -> Any:
         model = _source() if _source is not None else None
         if model is not None and MOTION_MASK_PROPERTY not in map_to_tensors and {"x", "y", "z"} <= set(map_to_tensors):
-            from edygs_ns.model.splat_export_view import bake_gaussians
-
-            baked = bake_gaussians(model, model.fallback_time)
+            baked = model._baked()  # the export's own bake (SplatExportView caches it)
             exported = np.stack([np.asarray(map_to_tensors[a]).reshape(-1) for a in ("x", "y", "z")], axis=1)
             rows = exported_rows(baked["means"].cpu().numpy(), exported)
             if rows is None:

@@ -205,7 +205,14 @@ class SplatExportView(SplatfactoModel):
         return resolve_time(getattr(self.config, "fallback_time", DEFAULT_FALLBACK_TIME))
 
     def _baked(self) -> Dict[str, Tensor]:
-        return bake_gaussians(self, self.fallback_time)
+        """bake_gaussians at the fallback time, computed once while the time and every parameter
+        stay the same (ns-export reads means, scales and quats, and the PLY writer the mask)."""
+        key = (self.fallback_time, tuple((p.data_ptr(), p._version, tuple(p.shape)) for p in self.parameters()))
+        cached = getattr(self, "_bake_cache", None)
+        if cached is None or cached[0] != key:
+            cached = (key, bake_gaussians(self, self.fallback_time))
+            self._bake_cache = cached
+        return cached[1]
 
     @property
     def num_points(self) -> int:
