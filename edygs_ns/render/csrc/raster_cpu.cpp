@@ -687,6 +687,7 @@ struct ProjectSettings {
 constexpr double kRadiusSigmas = 3.0;     // projection.RADIUS_SIGMAS
 constexpr double kMinDiscriminant = 0.01;  // projection.MIN_DISCRIMINANT
 constexpr double kFovGuardBand = 0.3;     // projection.FOV_GUARD_BAND
+constexpr int64_t kBlock = 1024;  // Gaussians per OpenMP work item in the projection loops
 
 // Every intermediate of one (camera, Gaussian) projection that the backward needs.
 template <typename scalar_t>
@@ -773,8 +774,11 @@ void project_forward_all(const scalar_t* means, const scalar_t* quats, const sca
     scalar_t view[16], k[9];
     std::copy(views + 16 * c, views + 16 * (c + 1), view);
     std::copy(ks + 9 * c, ks + 9 * (c + 1), k);
-#pragma omp for simd schedule(static)
-    for (int64_t g = 0; g < n; ++g) {
+#pragma omp for schedule(static)
+    for (int64_t blk = 0; blk < (n + kBlock - 1) / kBlock; ++blk) {
+    const int64_t g_end = std::min(n, (blk + 1) * kBlock);
+#pragma GCC ivdep
+    for (int64_t g = blk * kBlock; g < g_end; ++g) {
       ProjTerms<scalar_t> t;
       const int64_t i = c * n + g;
       const scalar_t mean[3] = {means[3 * g], means[3 * g + 1], means[3 * g + 2]};
@@ -795,6 +799,7 @@ void project_forward_all(const scalar_t* means, const scalar_t* quats, const sca
                              (t.my - radius < height);
       radii[i] = (t.valid & on_screen & (radius > 0)) ? static_cast<int32_t>(radius) : 0;
     }
+    }
   }
   }
 }
@@ -802,27 +807,32 @@ void project_forward_all(const scalar_t* means, const scalar_t* quats, const sca
 // Gradients: g_means [N, 3], g_quats [N, 4], g_scales [N, 3] (overwritten), g_views [C, 4, 4]
 // (zero-filled by the caller; rows 0-2 written). Per camera one vectorised loop over the
 // Gaussians adds into per-Gaussian sums of dL/dM and dL/d(mean) (scratch, one row per entry) and
-// reduces the view-matrix terms in double; then one loop turns dL/dM into scales and quaternions.
+// writes each Gaussian's twelve view-matrix terms (scratch rows), summed afterwards in double; then
+// one loop turns dL/dM into scales and quaternions.
 template <typename scalar_t>
 void project_backward_all(const scalar_t* means, const scalar_t* quats, const scalar_t* scales, const scalar_t* views,
                           const scalar_t* ks, int64_t n_cams, int64_t n, const ProjectSettings ps, int threads,
                           const scalar_t* g_means2d, const scalar_t* g_conics, const scalar_t* g_depths,
                           scalar_t* g_means, scalar_t* g_quats, scalar_t* g_scales, scalar_t* g_views) {
-  std::vector<scalar_t> scratch(12 * std::max<int64_t>(n, 1), scalar_t(0));
-  scalar_t* gm_rows = scratch.data();  // [9, N] dL/dM (M = R diag(s)), row 3 j + k
-  scalar_t* gp_rows = gm_rows + 9 * n;  // [3, N] dL/d(mean)
+  std::vector<scalar_t> scratch(24 * std::max<int64_t>(n, 1), scalar_t(0));
+  scalar_t* gm_rows = scratch.data();    // [9, N] dL/dM (M = R diag(s)), row 3 j + k
+  scalar_t* gp_rows = gm_rows + 9 * n;   // [3, N] dL/d(mean)
+  scalar_t* vt_rows = gm_rows + 12 * n;  // [12, N] this camera's view-matrix terms, row 4 r + j
   for (int64_t c = 0; c < n_cams; ++c) {
-    scalar_t view[16], k[9];
+#pragma omp parallel num_threads(threads)
+  {
+    scalar_t view[16], k[9];  // thread-private copies (kept in registers)
     std::copy(views + 16 * c, views + 16 * (c + 1), view);
     std::copy(ks + 9 * c, ks + 9 * (c + 1), k);
     const scalar_t fx = k[0], fy = k[4];
     const scalar_t* r0 = view;
     const scalar_t* r1 = view + 4;
     const scalar_t* r2 = view + 8;
-    double v00 = 0, v01 = 0, v02 = 0, v03 = 0, v10 = 0, v11 = 0, v12 = 0, v13 = 0, v20 = 0, v21 = 0, v22 = 0, v23 = 0;
-#pragma omp parallel for simd schedule(static) num_threads(threads) \
-    reduction(+ : v00, v01, v02, v03, v10, v11, v12, v13, v20, v21, v22, v23)
-    for (int64_t g = 0; g < n; ++g) {
+#pragma omp for schedule(static)
+    for (int64_t blk = 0; blk < (n + kBlock - 1) / kBlock; ++blk) {
+    const int64_t g_end = std::min(n, (blk + 1) * kBlock);
+#pragma GCC ivdep
+    for (int64_t g = blk * kBlock; g < g_end; ++g) {
       ProjTerms<scalar_t> t;
       const int64_t i = c * n + g;
       const scalar_t mean[3] = {means[3 * g], means[3 * g + 1], means[3 * g + 2]};
@@ -860,24 +870,30 @@ void project_backward_all(const scalar_t* means, const scalar_t* quats, const sc
       const scalar_t g_z = (t.in_range ? -g_inv_z * t.inv_z * t.inv_z : scalar_t(0)) + g_depths[i];
       // camera position p = R_view m + t
       for (int j = 0; j < 3; ++j) gp_rows[j * n + g] += g_x * r0[j] + g_y * r1[j] + g_z * r2[j];
-      v00 += g_a0[0] * t.j00 + g_x * mean[0];
-      v01 += g_a0[1] * t.j00 + g_x * mean[1];
-      v02 += g_a0[2] * t.j00 + g_x * mean[2];
-      v03 += g_x;
-      v10 += g_a1[0] * t.j11 + g_y * mean[0];
-      v11 += g_a1[1] * t.j11 + g_y * mean[1];
-      v12 += g_a1[2] * t.j11 + g_y * mean[2];
-      v13 += g_y;
-      v20 += g_a0[0] * t.j02 + g_a1[0] * t.j12 + g_z * mean[0];
-      v21 += g_a0[1] * t.j02 + g_a1[1] * t.j12 + g_z * mean[1];
-      v22 += g_a0[2] * t.j02 + g_a1[2] * t.j12 + g_z * mean[2];
-      v23 += g_z;
+      for (int j = 0; j < 3; ++j) {
+        vt_rows[j * n + g] = g_a0[j] * t.j00 + g_x * mean[j];
+        vt_rows[(4 + j) * n + g] = g_a1[j] * t.j11 + g_y * mean[j];
+        vt_rows[(8 + j) * n + g] = g_a0[j] * t.j02 + g_a1[j] * t.j12 + g_z * mean[j];
+      }
+      vt_rows[3 * n + g] = g_x;
+      vt_rows[7 * n + g] = g_y;
+      vt_rows[11 * n + g] = g_z;
     }
-    const double sums[12] = {v00, v01, v02, v03, v10, v11, v12, v13, v20, v21, v22, v23};
-    for (int j = 0; j < 12; ++j) g_views[16 * c + j] = static_cast<scalar_t>(sums[j]);
+    }
   }
-#pragma omp parallel for simd schedule(static) num_threads(threads)
-  for (int64_t g = 0; g < n; ++g) {
+#pragma omp parallel for schedule(static) num_threads(threads)
+    for (int j = 0; j < 12; ++j) {
+      const scalar_t* row = vt_rows + j * n;
+      double sum = 0;
+      for (int64_t g = 0; g < n; ++g) sum += row[g];
+      g_views[16 * c + j] = static_cast<scalar_t>(sum);
+    }
+  }
+#pragma omp parallel for schedule(static) num_threads(threads)
+  for (int64_t blk = 0; blk < (n + kBlock - 1) / kBlock; ++blk) {
+  const int64_t g_end = std::min(n, (blk + 1) * kBlock);
+#pragma GCC ivdep
+  for (int64_t g = blk * kBlock; g < g_end; ++g) {
     const scalar_t* q = quats + 4 * g;
     const scalar_t inv_norm = scalar_t(1) / std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
     const scalar_t w = q[0] * inv_norm, x = q[1] * inv_norm, y = q[2] * inv_norm, z = q[3] * inv_norm;
@@ -910,6 +926,7 @@ void project_backward_all(const scalar_t* means, const scalar_t* quats, const sc
     g_quats[4 * g + 1] = (gx - x * radial) * inv_norm;
     g_quats[4 * g + 2] = (gy - y * radial) * inv_norm;
     g_quats[4 * g + 3] = (gz - z * radial) * inv_norm;
+  }
   }
 }
 
