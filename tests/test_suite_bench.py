@@ -168,3 +168,27 @@ def test_reference_row_reads_evaluate_run_metrics(suite):
     assert ref == {"input_psnr": 28.0, "input_ssim": 0.9, "input_psnr_dynamic": None, "input_psnr_static": 29.0}
     assert suite.reference_row(metrics, suite.BLURRY_REFERENCE) is None
     assert not math.isnan(ref["input_psnr"])
+
+
+def test_merge_keeps_the_later_run_of_each_row(suite, tmp_path):
+    import json
+
+    spec = importlib.util.spec_from_file_location("suite_merge", BENCHMARKS / "suite_merge.py")
+    merge_module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(merge_module)
+    old = {"command": "old", "date": "d1", "rows": {"EDyGS": [_row("two-objects", 0, 28.0, 22.0), _row("two-objects", 1, 29.0, 23.0)]},
+           "references": {"EDI latent": [_ref("two-objects", 0, 27.0, 21.0)]}}
+    new = {"command": "new", "date": "d2", "rows": {"EDyGS": [_row("two-objects", 1, 30.0, 24.0)], "blurry D3DGS": [_row("static", 0, 26.0, None)]},
+           "references": {}}
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    (tmp_path / "new.json").write_text(json.dumps(new))
+    merged = merge_module.merge([tmp_path / "old.json", tmp_path / "new.json"])
+    rows = {(r["preset"], r["seed"]): r for r in merged["rows"]["EDyGS"]}
+    assert rows[("two-objects", 1)]["input_psnr"] == 30.0 and rows[("two-objects", 1)]["source"].endswith("new.json")
+    assert rows[("two-objects", 0)]["source"].endswith("old.json")
+    assert merged["per_preset"]["two-objects"]["EDyGS"]["input_psnr"] == pytest.approx(29.0)  # (28 + 30) / 2
+    assert merged["per_preset"]["static"]["blurry D3DGS"]["n"] == 1
+    assert [s["command"] for s in merged["sources"]] == ["old", "new"]
+    (tmp_path / "bad.json").write_text("{}")
+    with pytest.raises(SystemExit, match="bad.json"):
+        merge_module.merge([tmp_path / "bad.json"])
