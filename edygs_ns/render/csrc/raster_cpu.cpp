@@ -13,6 +13,7 @@
 // Gaussian is the composited total minus the running prefix (no division of the transmittance).
 // Per (Gaussian, tile) the gradient sums stay in vector registers over the chunks and are added
 // once into a per-thread, per-Gaussian buffer.
+// Also here: the EWA projection of edygs_ns/render/projection.py and its closed-form backward.
 
 #ifndef RASTER_KERNELS_ONLY
 #include <torch/extension.h>
@@ -83,7 +84,7 @@ inline Simd<float>::V exp_vec(Simd<float>::V x) {
   p = p * r + 1.0f;
   p = p * r + 1.0f;
   const M bits = (__builtin_convertvector(n, M) + 127) << 23;
-  return p * reinterpret_cast<const V&>(bits);
+  return p * (V)bits;  // a vector bit cast (no pointer pun)
 }
 
 // float64 (the parity tests): the library exp, lane by lane.
@@ -91,13 +92,6 @@ inline Simd<double>::V exp_vec(Simd<double>::V x) {
   Simd<double>::V out;
   for (int i = 0; i < Simd<double>::L; ++i) out[i] = std::exp(x[i]);
   return out;
-}
-
-template <typename V>
-inline auto lane_sum(const V& v) {
-  auto s = v[0];
-  for (int i = 1; i < static_cast<int>(sizeof(V) / sizeof(s)); ++i) s += v[i];
-  return s;
 }
 
 // Whether any lane of a mask is set (64-byte masks; a bit cast, not a pointer pun, which GCC may
@@ -170,10 +164,8 @@ std::vector<int> fold_owner() {
   }
   return own[0];
 }
-template <typename scalar_t>
-const std::vector<int> kFoldOwner = fold_owner<scalar_t>();
 
-// Lane of the folded vector that holds input vector j's total (the inverse of kFoldOwner).
+// Lane of the folded vector that holds input vector j's total (the inverse of fold_owner).
 template <typename scalar_t>
 std::vector<int> fold_slot() {
   const std::vector<int> owner = fold_owner<scalar_t>();
