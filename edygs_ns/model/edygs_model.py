@@ -430,7 +430,7 @@ class EdygsModel(SplatExportView):
         the switch; its movers get seeds, a rigid body and their evidence in M̂."""
         if self._train_cameras is None or self._train_image is None or not self.config.rigid_track.enabled:
             return
-        if not self.config.rigid_track.as_base_motion or self.static_masks.numel() == 0:
+        if not self.config.rigid_track.as_base_motion or not self.switched:
             return
         started = time.perf_counter()
         cfg = self.config.seeding
@@ -604,7 +604,7 @@ class EdygsModel(SplatExportView):
             losses["blur"] = cfg.lambda_blur * self._blur_term(linear, indices, batch["blurry"])
         if cfg.use_motion_mask and is_active(LossName.MASK_L1, phase):
             losses["mask_l1"] = cfg.lambda_mask * mask_l1(mask)
-        if cfg.use_motion_mask and is_active(LossName.MASK_CONSISTENCY, phase) and self.static_masks.numel() > 0:
+        if cfg.use_motion_mask and is_active(LossName.MASK_CONSISTENCY, phase) and self.switched:
             if indices is not None:
                 reference = self.static_masks[indices.to(self.static_masks.device)].to(self.device).float()[..., None]
                 losses["mask_consistency"] = cfg.lambda_mask_consistency * mask_consistency(mask.reshape(reference.shape), reference)

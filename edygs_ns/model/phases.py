@@ -7,7 +7,8 @@
 3. ``DYNAMIC``: deformation on; mask and poses refined (motion loss, mask consistency; event,
    EDI and blur losses go on).
 
-What trains and which losses count in each phase is decided here and nowhere else.
+What trains and which losses count in each phase is decided here and nowhere else; the training
+callback that applies it step by step is ``training/phase_driver.py``.
 """
 
 from __future__ import annotations
