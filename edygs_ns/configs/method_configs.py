@@ -7,14 +7,15 @@ edi-events,edi-events-pose,paper,full}`` (``paper``: EDyGS without our blur loss
 
 from __future__ import annotations
 
-from dataclasses import replace
-from typing import Dict, Optional, Tuple
+from dataclasses import dataclass, replace
+from typing import Dict, Literal, Optional, Tuple
 
 from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
+from tyro.conf import Suppress
 
 from edygs_ns.compat import allow_nerfstudio_checkpoints
 from edygs_ns.configs.run_length import CPU_DEFORMATION, CPU_ITERATIONS, shape_trainer
@@ -33,9 +34,27 @@ POSE_INIT_ITERS = 1000
 STATIC_ITERS = 4000
 
 
+# The optimiser and scheduler configs of every parameter group, with the settings EDyGS never
+# changes hidden from ``ns-train --help`` (a class docstring would print once per group there).
+@dataclass
+class AdamConfig(AdamOptimizerConfig):
+    # Adam with eps 1e-15, no gradient clipping and no weight decay.
+    eps: Suppress[float] = 1e-15
+    max_norm: Suppress[Optional[float]] = None
+    weight_decay: Suppress[float] = 0
+
+
+@dataclass
+class DecayConfig(ExponentialDecaySchedulerConfig):
+    # Exponential decay of the learning rate to lr_final at max_steps, without warm-up.
+    lr_pre_warmup: Suppress[float] = 1e-8
+    warmup_steps: Suppress[int] = 0
+    ramp: Suppress[Literal["linear", "cosine"]] = "cosine"
+
+
 def _adam(lr: float, lr_final: float | None = None, max_steps: int = MAX_ITERATIONS) -> dict:
-    scheduler = None if lr_final is None else ExponentialDecaySchedulerConfig(lr_final=lr_final, max_steps=max_steps)
-    return {"optimizer": AdamOptimizerConfig(lr=lr, eps=1e-15), "scheduler": scheduler}
+    scheduler = None if lr_final is None else DecayConfig(lr_final=lr_final, max_steps=max_steps)
+    return {"optimizer": AdamConfig(lr=lr), "scheduler": scheduler}
 
 
 #: Adam learning rate per parameter group: (initial, final of an exponential decay or None for constant).

@@ -33,6 +33,7 @@ from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
 from nerfstudio.utils.rich_utils import CONSOLE, get_progress
 from PIL import Image
+from tyro.conf import Suppress
 
 from edygs_ns.data.dataparser import EdygsDataParserConfig
 from edygs_ns.io.images import UINT8_MAX
@@ -45,16 +46,23 @@ PAIR_SIZE = 2
 
 @dataclass
 class EdygsDataManagerConfig(FullImageDatamanagerConfig):
-    """Full-image datamanager that pairs consecutive latents with their events."""
+    """Full-image datamanager that pairs consecutive latents with their events. The ``Suppress``
+    fields, hidden from ``ns-train --help``, are nerfstudio's that have no effect on a
+    FullImageDatamanager."""
 
     _target: Type = field(default_factory=lambda: EdygsDataManager)
     dataparser: EdygsDataParserConfig = field(default_factory=EdygsDataParserConfig)
     """The EDyGS dataparser (its metadata carries the event maps and latent pairing)."""
+    masks_on_gpu: Suppress[bool] = False
+    images_on_gpu: Suppress[bool] = False
+    eval_num_images_to_sample_from: Suppress[int] = -1
+    eval_num_times_to_repeat_images: Suppress[int] = -1
+    eval_image_indices: Suppress[Optional[Tuple[int, ...]]] = (0,)
     cache_images: Literal["cpu", "gpu"] = "cpu"
-    """Where decoded images are cached: "cpu" (pinned when CUDA exists) or "gpu" (the training device)."""
+    """Where decoded images are cached ("cpu": pinned when CUDA exists)."""
+    max_thread_workers: Suppress[Optional[int]] = None
     pair_events: bool = True
-    """Serve pairs of consecutive latents with the event map between them; False serves one
-    camera per step (always so for the blurry-input baseline)."""
+    """Serve pairs of latents and their events (False: one camera per step)."""
 
 
 class EdygsDataManager(FullImageDatamanager):

@@ -42,6 +42,7 @@ from nerfstudio.cameras.cameras import Cameras, CameraType
 from nerfstudio.data.dataparsers.base_dataparser import DataParser, DataParserConfig, DataparserOutputs
 from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.utils.rich_utils import CONSOLE
+from tyro.conf import Suppress
 
 from edygs_ns.data.layouts import read_scene
 from edygs_ns.data.layouts.common import GT_ALIGNMENT_SCALE_NOTE, PROCESSED_LAYOUT, SceneRecord
@@ -65,12 +66,9 @@ class EdygsDataParserConfig(DataParserConfig):
     layout: Literal["auto", "processed", "e2nerf-synthetic", "e2nerf-real", "evdeblurnerf"] = "auto"
     """Folder layout; "auto" detects it from the files present."""
     image_source: Literal["latent", "blurry"] = "latent"
-    """Training images: the EDI latents (one camera per latent), or the blurry inputs (one camera
-    per blurry frame at the exposure-centre pose and time; the blurry-input baseline)."""
+    """Training images: the EDI latents, or the blurry frames (the baseline)."""
     eval_mode: Literal["novel", "interval", "all"] = "novel"
-    """Evaluation split. "novel" trains on all latents and evaluates on the ground-truth novel
-    views (scenes without them fall back to "interval", with a warning); "interval" holds out the
-    latents of every eval_interval-th blurry frame; "all" trains and evaluates on all latents."""
+    """Eval split: ground-truth novel views, interval hold-out, or all latents."""
     eval_interval: int = 8
     """Blurry frames b with b % eval_interval == 0 are held out in "interval" mode."""
     orientation_method: Literal["pca", "up", "vertical", "none"] = "up"
@@ -84,23 +82,19 @@ class EdygsDataParserConfig(DataParserConfig):
     scene_scale: float = 1.0
     """Half side of the scene box (in transformed units)."""
     initial_points: Literal["triangulated", "random"] = "triangulated"
-    """Initial points of an E2NeRF / EvDeblurNeRF scene read directly: its EDI latents triangulated at the
-    given poses (cached; random with a warning when that fails), or random in the scene box (docs/layouts.md)."""
+    """Initial points of an E2NeRF / EvDeblurNeRF scene (docs/layouts.md)."""
     num_random_points: int = 20000
     """Points drawn uniformly in the scene box when the scene has no point cloud."""
-    random_seed: int = 0
+    random_seed: Suppress[int] = 0
     """Seed of those random points."""
     theta: Optional[float] = None
-    """Contrast threshold override; None uses the scene's value (a processed scene's transforms.json; the
-    authors' value for a layout read directly: E2NeRF real 0.3, E2NeRF synthetic 0.2, EvDeblurNeRF 0.2
-    Blender / 0.25 CDAVIS)."""
+    """Contrast threshold override; None: the scene's value (docs/layouts.md)."""
     color_space: Optional[Literal["linear", "srgb"]] = None
-    """Pixel encoding override; None uses the scene's value ("linear" for E2NeRF and EvDeblurNeRF data)."""
-    edi_clip_max: float = 1.0
+    """Pixel encoding override; None: the scene's value."""
+    edi_clip_max: Suppress[float] = 1.0
     """Clip (linear intensity) of EDI latents computed for E2NeRF and EvDeblurNeRF layouts."""
     k: Optional[int] = None
-    """Latents per blurry frame where the layout leaves it open (EvDeblurNeRF: raw events are binned
-    into k - 1 bins; None: 5). Other layouts fix k themselves."""
+    """Latents per blurry frame of an EvDeblurNeRF scene (None: 5)."""
 
 
 @dataclass

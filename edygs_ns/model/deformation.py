@@ -26,7 +26,7 @@ class DeformationConfig:
     skip_layer: int = 4
     """the encoded input is concatenated again after this layer"""
     xyz_frequencies: int = 10
-    """positional-encoding frequencies of the canonical position (3 + 3·2·10 = 63 dims)"""
+    """positional-encoding frequencies of the canonical position"""
     time_frequencies: int = 6
     """positional-encoding frequencies of the time"""
 

@@ -30,6 +30,7 @@ import torch.nn.functional as F
 from jaxtyping import Bool, Float
 from scipy import ndimage
 from torch import Tensor
+from tyro.conf import Suppress
 
 #: MAD -> standard deviation of a normal distribution.
 MAD_TO_SIGMA = 1.4826
@@ -44,87 +45,76 @@ CLOSING_STEPS = 2
 
 @dataclass
 class DynamicSeedingConfig:
-    """Motion evidence and dynamic seeds at the start of the dynamic phase."""
+    """Motion evidence and dynamic seeds at the start of the dynamic phase. Fields marked
+    ``Suppress`` are the evidence detector's and the seeder's tuning: hidden from ``ns-train --help``
+    and the command line, set in Python or a saved config.yml (docs/method.md, "Configuration notes")."""
 
     enabled: bool = True
-    """derive motion evidence and seed dynamic Gaussians at the static ->
-    dynamic switch (needs the motion mask; off for ablations without it)"""
-    window_fraction: float = 0.055
-    """box-filter width of the residual, a fraction of the image width (odd,
-    >= 3 px; 7 px at 128 px; docs/method.md)"""
-    threshold_mads: float = 4.5
-    """evidence where the filtered residual exceeds median + this · σ_MAD
-    over all latents (docs/method.md)"""
-    min_threshold: float = 0.03
+    """find moving objects and seed dynamic Gaussians at the dynamic switch"""
+    window_fraction: Suppress[float] = 0.055
+    """box-filter width of the residual, a fraction of the image width (odd, >= 3 px)"""
+    threshold_mads: Suppress[float] = 4.5
+    """evidence where the filtered residual exceeds median + this · σ_MAD over all latents"""
+    min_threshold: Suppress[float] = 0.03
     """the evidence threshold is at least this (mean absolute colour error in [0, 1])"""
     grow_mads: float = 2.5
-    """evidence grows from the pixels over the threshold into connected pixels over median + this · σ_MAD
-    (hysteresis: whole objects, not their most contrasted patches; >= threshold_mads: off)"""
-    trim_mads: float = 2.5
-    """... where the 3 px filtered residual is over its median + this · σ_MAD (not the coarse filter's halo)"""
-    reference_time: float = 0.5
-    """normalised time of the reference latent, searched first for objects
-    (and the centre of the dynamic phase's time window)"""
-    pixel_stride: int = 1
+    """evidence grows into connected pixels over median + this · σ_MAD"""
+    trim_mads: Suppress[float] = 2.5
+    """... where the 3 px filtered residual is over its median + this · σ_MAD"""
+    reference_time: Suppress[float] = 0.5
+    """time of the reference latent, searched first (and the centre of the dynamic time window)"""
+    pixel_stride: Suppress[int] = 1
     """seed every this-many-th evidence pixel in each direction"""
-    max_seeds: int = 4000
+    max_seeds: Suppress[int] = 4000
     """at most this many seeds (evenly subsampled)"""
-    depth_scale: float = 0.9
-    """seeds sit at this fraction of the static render's depth (in front of the surface behind)"""
-    seed_shape: Literal["cap", "flat"] = "cap"
-    """cap: a round cap bulging towards the camera, at the region's median
-    depth × depth_scale; flat: each seed at its pixel's depth × that"""
-    coverage_times: Tuple[float, ...] = (0.0, 1.0)
-    """times of latents whose evidence, taken back by an object's rigid
-    track, seeds what its reference latent did not see (empty: none)"""
-    coverage_spacing: float = 1.5
-    """a coverage seed is kept only if it is farther than this many seed radii from every seed"""
-    seed_opacity: float = 0.5
+    depth_scale: Suppress[float] = 0.9
+    """seeds sit at this fraction of the static render's depth"""
+    seed_shape: Suppress[Literal["cap", "flat"]] = "cap"
+    """cap: a round cap towards the camera at the region's median depth; flat: per-pixel depth"""
+    coverage_times: Suppress[Tuple[float, ...]] = (0.0, 1.0)
+    """times of latents whose evidence, carried back by the rigid track, adds seeds (empty: none)"""
+    coverage_spacing: Suppress[float] = 1.5
+    """a coverage seed is kept only if farther than this many seed radii from every seed"""
+    seed_opacity: Suppress[float] = 0.5
     """opacity of a seed"""
-    seed_mask: float = 0.9
+    seed_mask: Suppress[float] = 0.9
     """motion mask m of a seed"""
-    scale_pixels: float = 0.8
+    scale_pixels: Suppress[float] = 0.8
     """seed radius in pixels at its depth (times pixel_stride)"""
     consistency_target: Literal["evidence", "rendered", "max"] = "evidence"
-    """M̂ of the dynamic phase: motion evidence near the movers, the mask
-    the static model renders (the paper), or their maximum"""
-    init_motion_steps: int = 300
-    """MLP-only steps regressing the seeds' deformation onto their track,
-    when the track is not the base motion (0: off)"""
-    init_motion_lr: float = 1e-3
+    """M̂ of the dynamic phase (rendered: the paper's)"""
+    init_motion_steps: Suppress[int] = 300
+    """MLP-only steps regressing the seeds' deformation onto their track (0: off)"""
+    init_motion_lr: Suppress[float] = 1e-3
     """Adam learning rate of the motion initialisation"""
-    init_motion_batch: int = 512
+    init_motion_batch: Suppress[int] = 512
     """(seed, time) samples per motion-initialisation step"""
-    min_object_fraction: float = 0.002
-    """evidence regions below this fraction of the image (25 px at 128x96)
-    are noise; also the least evidence of a translation-track point"""
-    min_relative_size: float = 0.1
-    """evidence regions below this fraction of the first (largest) tracked region are not tracked"""
-    max_objects: int = 6
-    """at most this many moving objects get seeds and a rigid body (model/motion_init.py)"""
-    max_candidates: int = 10
-    """at most this many evidence regions are tracked (movers and still flaws of the static model)"""
-    refresh_candidates: int = 3
-    """at the evidence refresh (schedule.evidence_refresh_iters), at most this many new regions are tracked"""
-    refresh_margin: float = 0.03
-    """at the refresh, evidence within this fraction of the width of the rendered or targeted mask
-    belongs to the objects already found"""
+    min_object_fraction: Suppress[float] = 0.002
+    """evidence regions below this fraction of the image are noise"""
+    min_relative_size: Suppress[float] = 0.1
+    """regions below this fraction of the largest tracked region are not tracked"""
+    max_objects: Suppress[int] = 6
+    """at most this many moving objects get seeds and a rigid body"""
+    max_candidates: Suppress[int] = 10
+    """at most this many evidence regions are tracked"""
+    refresh_candidates: Suppress[int] = 3
+    """at most this many new regions are tracked at the evidence refresh"""
+    refresh_margin: Suppress[float] = 0.03
+    """at the refresh, evidence within this fraction of the width of a known object's mask is its own"""
     still_shift: float = 0.5
-    """a tracked region is a mover only if, in some latent, it lies this many of its radii from
-    where any static point on its reference ray would be (and ``still_shift_fraction``)"""
-    still_shift_fraction: float = 0.05
-    """... and at least this fraction of the image width (a track of a few pixels jitters by one)"""
+    """a mover strays this many of its radii from its static ray in some latent"""
+    still_shift_fraction: Suppress[float] = 0.05
+    """... and at least this fraction of the image width"""
     still_shift_cap: float = 0.1
-    """... but need not exceed this fraction of the image width (a big object need not travel its radius)"""
-    min_presence: float = 0.4
-    """a mover's evidence (near its track) is found in at least this share of the latents"""
-    min_object_iou: float = 0.3
+    """... but need not exceed this fraction of the image width"""
+    min_presence: Suppress[float] = 0.4
+    """a mover's evidence is found in at least this share of the latents"""
+    min_object_iou: Suppress[float] = 0.3
     """a mover's tracked silhouette overlaps its evidence by at least this mean IoU ..."""
-    steady_presence: float = 0.75
-    """... unless its evidence is found in this share of the latents (then its rigid fit is poor,
-    e.g. a deforming object: its body only translates and the MLP does the rest)"""
-    steady_shift: float = 1.0
-    """such a region (kept on presence alone) must stray this many of its radii instead of ``still_shift``"""
+    steady_presence: Suppress[float] = 0.75
+    """... unless its evidence is found in this share of the latents (e.g. a deforming object)"""
+    steady_shift: Suppress[float] = 1.0
+    """such a region must stray this many of its radii instead of ``still_shift``"""
 
 
 def dilate(masks: Bool[Tensor, "... H W"], pixels: int) -> Bool[Tensor, "... H W"]:

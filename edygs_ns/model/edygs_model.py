@@ -16,9 +16,11 @@ from typing import Callable, Dict, List, Literal, Optional, Tuple, Type, Union
 import torch
 from torch import Tensor
 from torch.nn import Parameter
+from tyro.conf import Suppress
 
 from nerfstudio.cameras.camera_optimizers import CameraOptimizer, CameraOptimizerConfig
 from nerfstudio.cameras.cameras import Cameras
+from nerfstudio.configs.config_utils import to_immutable_dict
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.models.base_model import ModelConfig
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -65,9 +67,16 @@ MIN_DEFORMED_SCALE = 1e-6
 
 @dataclass
 class EdygsModelConfig(ModelConfig):
-    """EDyGS: every knob of the model, the losses and the phase schedule."""
+    """EDyGS: every knob of the model, the losses and the phase schedule. ``Suppress`` hides a field
+    from ``ns-train --help`` and the command line (docs/method.md, "Configuration notes"); the first
+    five are nerfstudio's NeRF settings, unused by a Gaussian model."""
 
     _target: Type = field(default_factory=lambda: EdygsModel)
+    enable_collider: Suppress[bool] = True
+    collider_params: Suppress[Optional[Dict[str, float]]] = to_immutable_dict({"near_plane": 2.0, "far_plane": 6.0})
+    loss_coefficients: Suppress[Dict[str, float]] = to_immutable_dict({"rgb_loss_coarse": 1.0, "rgb_loss_fine": 1.0})
+    eval_num_rays_per_chunk: Suppress[int] = 4096
+    prompt: Suppress[Optional[str]] = None
     schedule: PhaseSchedule = field(default_factory=PhaseSchedule)
     """lengths of the pose-init and static phases (the dynamic phase runs to the end)"""
     deformation: DeformationConfig = field(default_factory=DeformationConfig)
@@ -81,8 +90,7 @@ class EdygsModelConfig(ModelConfig):
     camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="SO3xR3"))
     """per-latent-frame pose refinement (nerfstudio's camera optimiser)"""
     rasterizer: Literal["auto", "cpu", "torch", "gsplat"] = "auto"
-    """rasteriser backend: auto picks gsplat on CUDA and the compiled one on CPU
-    (docs/cpu_rasterizer.md); torch forces the torch reference"""
+    """rasteriser; auto: gsplat on CUDA, the compiled one on CPU"""
     sh_degree: int = 3
     """maximum spherical-harmonics degree"""
     sh_degree_interval: int = 1000
@@ -91,11 +99,10 @@ class EdygsModelConfig(ModelConfig):
     """opacity of new Gaussians"""
     init_mask: float = 0.1
     """initial motion-mask value m of every Gaussian (biased towards static)"""
-    num_random: int = 5000
+    num_random: Suppress[int] = 5000
     """Gaussians drawn uniformly in the scene box when the data has no points"""
     fallback_time: float = 0.0
-    """normalised time in [0, 1] for cameras without one (ns-render
-    interpolate, ns-export gaussian-splat); $EDYGS_TIME overrides it"""
+    """time in [0, 1] for cameras without one; $EDYGS_TIME overrides it"""
     background_color: Literal["black", "white"] = "black"
     """background colour of renders (the motion mask's background is 0)"""
     ssim_lambda: float = 0.2
@@ -105,20 +112,18 @@ class EdygsModelConfig(ModelConfig):
     lambda_edi_static: float = 1.0
     """weight of the static term L(Ĉ(1 − M), EDI(1 − M)) (static phase)"""
     edi_centre_weighting: float = 2.0
-    """a: the EDI latent at place u ∈ [0, 1] of its exposure weighs
-    1 / (1 + a (2u − 1)²), mean 1; 0: all alike (the paper)"""
+    """a: EDI latent at u ∈ [0, 1] of its exposure weighs ∝ 1 / (1 + a (2u − 1)²)"""
     lambda_blur: float = 24.0
-    """weight of the blur-formation loss |mean of an exposure's latent
-    renders − its blurry frame| (not in the paper; docs/method.md)"""
+    """weight of the blur-formation loss (not in the paper)"""
     lambda_event: float = 0.5
     """weight of the event loss between consecutive latent renders"""
     lambda_mask: float = 0.15
-    """weight of ‖M‖₁ in the static phase, the bias towards static (docs/method.md)"""
+    """weight of ‖M‖₁ in the static phase, the bias towards static"""
     lambda_mask_consistency: float = 0.1
     """weight of ‖M − M̂‖₁ in the dynamic phase (M̂: seeding.consistency_target)"""
     lambda_motion: float = 0.1
     """weight of the motion loss ‖(1 − m)Δ‖² (dynamic phase)"""
-    event_log_eps: float = DEFAULT_LOG_EPS
+    event_log_eps: Suppress[float] = DEFAULT_LOG_EPS
     """ε in ln(I + ε) of the event loss"""
     use_edi_loss: bool = True
     """ablation switch: supervise with the EDI latent images"""
@@ -129,17 +134,17 @@ class EdygsModelConfig(ModelConfig):
     optimize_poses: bool = True
     """ablation switch: refine the per-latent camera poses"""
     use_motion_mask: bool = True
-    """ablation switch: the motion-mask field (static term, mask losses, mask-gated deformation)"""
+    """ablation switch: the motion-mask field and its losses"""
     use_deformation: bool = True
     """ablation switch: the deformation field in the dynamic phase"""
     deform_mask_threshold: float = 0.2
-    """deform only Gaussians with m >= this (0: all, as the paper; docs/method.md)"""
-    detach_mask_in_motion_loss: bool = True
-    """no gradient from the motion loss into m (it cannot be lowered by
-    calling static Gaussians dynamic)"""
+    """deform only Gaussians with m >= this (0: all, as the paper)"""
+    deform_subset: Literal["auto", "gather", "masked"] = "auto"
+    """deform the subset gathered (host round trip) or all Gaussians masked; auto: masked on CUDA"""
+    detach_mask_in_motion_loss: Suppress[bool] = True
+    """no gradient from the motion loss into m (calling Gaussians dynamic cannot lower it)"""
     ablation: Optional[Literal["events-only", "edi-only", "edi-events", "edi-events-pose", "paper", "full", "blurry"]] = None
-    """the switches above as a row of the paper's Table 2 ("paper": its
-    losses only; "full": with the blur loss); None: as given"""
+    """the switches above as a row of the paper's Table 2; None: as given"""
 
     def __post_init__(self) -> None:
         from edygs_ns.model.ablations import apply_ablation

@@ -58,13 +58,11 @@ class PhaseSchedule:
     static_iters: int = 1200
     """iterations of static-region reconstruction (phase 2) after the warm-up"""
     dynamic_window_start: float = 0.15
-    """dynamic phase's time curriculum: latents are first drawn within this
-    half-width of seeding.reference_time (>= 0.5: off; docs/method.md)"""
+    """dynamic phase: latents first drawn within this half-width of the reference time"""
     dynamic_window_ramp_iters: int = 3000
-    """the window widens linearly to the whole clip over this many dynamic-phase iterations"""
+    """the window widens to the whole clip over this many dynamic-phase iterations"""
     evidence_refresh_iters: int = 4000
-    """after this many dynamic-phase iterations the motion evidence is found once more, on the
-    dynamic model, and objects missed at the switch are added (0: never; model/motion_init.py)"""
+    """dynamic-phase iterations before missed objects are looked for again (0: never)"""
 
     @property
     def static_start(self) -> int:

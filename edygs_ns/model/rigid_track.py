@@ -31,6 +31,7 @@ import torch
 from jaxtyping import Float
 from nerfstudio.cameras.lie_groups import exp_map_SO3xR3
 from torch import Tensor
+from tyro.conf import Suppress
 
 from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig, Seeds, dilate, seed_gaussians
 from edygs_ns.render.contract import RasterBackend
@@ -38,37 +39,32 @@ from edygs_ns.render.contract import RasterBackend
 
 @dataclass
 class RigidTrackConfig:
-    """Photometric rigid tracking of the dynamic seeds (part of the motion initialisation)."""
+    """Photometric rigid tracking of the dynamic seeds (part of the motion initialisation). Fields
+    marked ``Suppress`` are hidden from ``ns-train --help`` and the command line (docs/method.md,
+    "Configuration notes")."""
 
     enabled: bool = True
-    """track each object's seeds as a rigid body through every latent; off:
-    one translation track of all evidence, regressed into the MLP"""
+    """track each object's seeds as a rigid body (off: one translation track)"""
     steps: int = 25
     """Adam steps per latent"""
-    lr_rotation: float = 0.02
+    lr_rotation: Suppress[float] = 0.02
     """Adam learning rate of the rotation vector ω (radians)"""
-    lr_translation: float = 0.02
+    lr_translation: Suppress[float] = 0.02
     """Adam learning rate of the translation τ in units of the seeds' radius"""
     as_base_motion: bool = True
-    """the tracks are the deformation's trained base motion under the MLP's
-    residual; off: the MLP is regressed onto them (docs/method.md)"""
-    reach: float = 1.25
-    """a body moves deformed Gaussians within this many times its seeds'
-    largest distance from its centre"""
-    opacity: float = 0.95
-    """opacity of the seeds while tracking (an object hides what is behind it)"""
-    region_dilation: float = 0.04
-    """the fit counts pixels within this fraction of the image width of the
-    object's evidence (5 px at 128 px)"""
-    follow_margin: float = 1.0
-    """evidence within this many object radii of its silhouette (at the
-    neighbour's fit) is its own; other movers' evidence is ignored"""
+    """the tracks are the deformation's base motion (off: the MLP learns them)"""
+    reach: Suppress[float] = 1.25
+    """a body moves deformed Gaussians within this many times its seeds' largest radius"""
+    opacity: Suppress[float] = 0.95
+    """opacity of the seeds while tracking"""
+    region_dilation: Suppress[float] = 0.04
+    """the fit counts pixels within this fraction of the image width of the object's evidence"""
+    follow_margin: Suppress[float] = 1.0
+    """evidence within this many object radii of its silhouette is its own"""
     silhouette_weight: float = 0.2
-    """weight of |alpha of the translated (unturned) seeds − the object's
-    evidence| beside the colour L1 (docs/method.md)"""
+    """weight of the silhouette term beside the colour L1 of the fit"""
     extrapolate: bool = False
-    """start each latent's fit at the last two fits' constant velocity
-    instead of the neighbour's fit (not kept: docs/experiments.md)"""
+    """start each latent's fit at the last two fits' constant velocity (not kept)"""
 
 
 #: A window (y0, y1, x0, x1) of an image: rows y0..y1-1, columns x0..x1-1.

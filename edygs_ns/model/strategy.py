@@ -41,6 +41,7 @@ from gsplat.strategy import DefaultStrategy
 from gsplat.strategy.ops import _update_param_with_optimizer
 from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
+from tyro.conf import Suppress
 
 from edygs_ns.render.contract import RasterOutputs
 
@@ -50,7 +51,9 @@ LAST_REFINE_KEY = "last_refine"
 
 @dataclass
 class DensifyConfig:
-    """3DGS densification schedule and thresholds (gsplat's DefaultStrategy)."""
+    """3DGS densification schedule and thresholds (gsplat's DefaultStrategy). Fields marked
+    ``Suppress`` are hidden from ``ns-train --help`` and the command line (docs/method.md,
+    "Configuration notes")."""
 
     refine_start_iter: int = 500
     """first step at which Gaussians are cloned, split and pruned"""
@@ -60,26 +63,22 @@ class DensifyConfig:
     """refine every this many steps"""
     reset_every: int = 3000
     """reset opacities to 2 * prune_opa every this many steps"""
-    pause_refine_after_reset: int = 0
+    pause_refine_after_reset: Suppress[int] = 0
     """skip refinement for this many steps after an opacity reset"""
     grow_grad2d: float = 0.0007
-    """mean screen-space gradient (NDC units per camera, as 3DGS) above which
-    a Gaussian grows (the authors' 7e-4; 3DGS 2e-4; docs/experiments.md)"""
+    """mean screen-space gradient (as 3DGS) above which a Gaussian grows"""
     grow_grad2d_blur: float = 0.0014
-    """grow threshold while the blur loss is on (its gradient joins the
-    statistic); 0.0007 is affordable on a GPU (docs/method.md)"""
+    """grow_grad2d while the blur loss is on (its gradient joins in)"""
     grow_scale3d: float = 0.01
-    """growing Gaussians whose largest scale is below this fraction of the
-    scene scale are cloned, larger ones are split"""
+    """growing Gaussians under this fraction of the scene scale are cloned, others split"""
     prune_opa: float = 0.005
     """Gaussians with opacity below this are pruned"""
     prune_scale3d: float = 0.1
-    """after the first opacity reset, Gaussians larger than this fraction of the scene scale are pruned"""
-    revised_opacity: bool = False
+    """after an opacity reset, Gaussians over this fraction of the scene scale are pruned"""
+    revised_opacity: Suppress[bool] = False
     """split with the revised opacity rule of arXiv:2404.06109"""
-    absgrad: bool = False
-    """use AbsGS's absolute gradients; neither backend of the rendering
-    contract computes them, so it must stay False"""
+    absgrad: Suppress[bool] = False
+    """AbsGS's absolute gradients: no rasteriser backend computes them, so it must stay False"""
     verbose: bool = False
     """log the counts of every refinement"""
 
