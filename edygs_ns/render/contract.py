@@ -1,6 +1,8 @@
 """The one rendering contract that every rasteriser backend implements.
 
-Shapes: N Gaussians, C cameras, D feature channels, H x W pixels.
+Shapes: N Gaussians, C cameras, D feature channels, H x W pixels. The Gaussians' geometry
+(means, quats, scales) is either shared by the C cameras ([N, ·]) or given per camera
+([C, N, ·]: e.g. deformed at each camera's time, so a training pair renders in one call).
 Cameras use the OpenCV convention (x right, y down, z forward) for `viewmats` (world-to-camera).
 """
 
@@ -49,9 +51,9 @@ class RasterBackend(Protocol):
 
     def __call__(
         self,
-        means: Tensor,  # [N, 3] world
-        quats: Tensor,  # [N, 4] wxyz, need not be normalised
-        scales: Tensor,  # [N, 3] activated (positive) world units
+        means: Tensor,  # [N, 3] or [C, N, 3] world
+        quats: Tensor,  # [N, 4] or [C, N, 4] wxyz, need not be normalised
+        scales: Tensor,  # [N, 3] or [C, N, 3] activated (positive) world units
         opacities: Tensor,  # [N] activated, in (0, 1)
         features: Tensor,  # [N, D] or [C, N, D] colours/extra channels, already evaluated
         viewmats: Tensor,  # [C, 4, 4] world-to-camera, OpenCV
@@ -67,11 +69,12 @@ class RasterBackend(Protocol):
 def check_inputs(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, features: Tensor,
                  viewmats: Tensor, Ks: Tensor) -> None:
     """Raise ValueError naming the argument whose shape breaks the contract."""
-    n = means.shape[0]
+    n = means.shape[-2] if means.dim() >= 2 else -1
+    lead = tuple(means.shape[:-2]) if means.dim() == 3 else ()
     expect = {
-        "means": (means, (n, 3)),
-        "quats": (quats, (n, 4)),
-        "scales": (scales, (n, 3)),
+        "means": (means, (*lead, n, 3)),
+        "quats": (quats, (*lead, n, 4)),
+        "scales": (scales, (*lead, n, 3)),
         "opacities": (opacities, (n,)),
     }
     for name, (tensor, shape) in expect.items():
@@ -86,6 +89,8 @@ def check_inputs(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor
         raise ValueError(f"rasterize: Ks has shape {tuple(Ks.shape)}, expected [C={c}, 3, 3]")
     if features.dim() == 3 and features.shape[0] != c:
         raise ValueError(f"rasterize: features has {features.shape[0]} cameras, viewmats has {c}")
+    if lead and lead[0] != c:
+        raise ValueError(f"rasterize: means has {lead[0]} cameras, viewmats has {c}")
 
 
 def select_backend(device: torch.device, force: Optional[str] = None) -> RasterBackend:

@@ -30,7 +30,7 @@ from edygs_ns.render.contract import (
     RasterOutputs,
     check_inputs,
 )
-from edygs_ns.render.projection import Projection, project_gaussians
+from edygs_ns.render.projection import Projection, project_gaussians, project_per_camera
 from edygs_ns.render.torch_backend import CULL_MARGIN, MIN_ALPHA_FOR_DEPTH, MIN_OPACITY, TILE_SIZE
 
 #: the compositing rules handed to the kernel, in its order.
@@ -126,7 +126,8 @@ def rasterize_cpu(
     far_plane: float = DEFAULT_FAR,
 ) -> RasterOutputs:
     """Differentiable CPU rasteriser, compiled; same rules as ``rasterize_torch``. Arguments and
-    their shapes and units: ``contract.RasterBackend``.
+    their shapes and units: ``contract.RasterBackend`` (Gaussians per camera [C, N, ·] are
+    projected camera by camera and composited in one call).
 
     Returns:
         RasterOutputs; gradients reach means, quats, scales, opacities, features and viewmats,
@@ -145,7 +146,7 @@ def rasterize_cpu(
         raise ValueError(
             f"rasterize: backgrounds has shape {tuple(backgrounds.shape)}, expected [C={n_cams}, D={n_channels}]"
         )
-    proj = project_compiled(means, quats, scales, viewmats, Ks, width, height, near_plane, far_plane)
+    proj = project_per_camera(project_compiled, means, quats, scales, viewmats, Ks, width, height, near_plane, far_plane)
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()

@@ -11,7 +11,7 @@ convention (x right, y down, z forward).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import List, Optional
+from typing import Callable, List, Optional
 
 import torch
 from jaxtyping import Float, Int
@@ -89,6 +89,26 @@ def project_gaussians(
         means, quats, scales, viewmats, Ks.detach(), (width, height, near_plane, far_plane, eps2d)
     )
     return Projection(means2d=means2d, conics=conics, depths=depths, radii=radii)
+
+
+def project_per_camera(
+    project: Callable[..., Projection], means: Tensor, quats: Tensor, scales: Tensor, viewmats: Tensor, Ks: Tensor,
+    *args, **kwargs,
+) -> Projection:
+    """``project`` (a projection with ``project_gaussians``' arguments) for Gaussians shared by the
+    C cameras (means [N, 3]: one call) or given per camera (means [C, N, 3], quats [C, N, 4],
+    scales [C, N, 3]: one call per camera, outputs concatenated along C). ``args`` / ``kwargs``:
+    width, height and the rest, passed on."""
+    if means.dim() == 2:
+        return project(means, quats, scales, viewmats, Ks, *args, **kwargs)
+    parts = [
+        project(means[c], quats[c], scales[c], viewmats[c : c + 1], Ks[c : c + 1], *args, **kwargs)
+        for c in range(means.shape[0])
+    ]
+    return Projection(
+        means2d=torch.cat([p.means2d for p in parts]), conics=torch.cat([p.conics for p in parts]),
+        depths=torch.cat([p.depths for p in parts]), radii=torch.cat([p.radii for p in parts]),
+    )
 
 
 def project_gaussians_autograd(

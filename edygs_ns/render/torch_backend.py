@@ -53,7 +53,7 @@ from edygs_ns.render.contract import (
     RasterOutputs,
     check_inputs,
 )
-from edygs_ns.render.projection import project_gaussians
+from edygs_ns.render.projection import project_gaussians, project_per_camera
 
 #: tile edge in pixels: decides which Gaussians may reach a pixel (gsplat's 3-sigma square rule).
 TILE_SIZE = 8
@@ -774,7 +774,8 @@ def rasterize_torch(
     """Differentiable tile rasteriser with gsplat's rules; see ``contract.RasterBackend``.
 
     Args:
-        means: [N, 3] world positions. quats: [N, 4] wxyz. scales: [N, 3] activated, world units.
+        means: [N, 3] world positions. quats: [N, 4] wxyz. scales: [N, 3] activated, world units;
+            or [C, N, ·] each: Gaussians per camera (projected per camera, composited together).
         opacities: [N] activated. features: [N, D] or [C, N, D], any D.
         viewmats: [C, 4, 4] world-to-camera (OpenCV). Ks: [C, 3, 3] pixel intrinsics.
         width, height: image size in pixels.
@@ -787,13 +788,13 @@ def rasterize_torch(
         and ``means2d.grad`` holds dL/d(pixel centre) after backward.
     """
     check_inputs(means, quats, scales, opacities, features, viewmats, Ks)
-    n_cams, n = viewmats.shape[0], means.shape[0]
+    n_cams, n = viewmats.shape[0], means.shape[-2]
     n_channels = features.shape[-1]
     if backgrounds is not None and tuple(backgrounds.shape) != (n_cams, n_channels):
         raise ValueError(
             f"rasterize: backgrounds has shape {tuple(backgrounds.shape)}, expected [C={n_cams}, D={n_channels}]"
         )
-    proj = project_gaussians(means, quats, scales, viewmats, Ks, width, height, near_plane, far_plane)
+    proj = project_per_camera(project_gaussians, means, quats, scales, viewmats, Ks, width, height, near_plane, far_plane)
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
