@@ -112,10 +112,18 @@ def adjust_poses(c2w: Tensor, adj: Tensor) -> Tensor:
     return torch.cat([torch.bmm(adj[:, :3, :3], c2w[:, :3, :3]), c2w[:, :3, 3:] + adj[:, :3, 3:]], dim=-1)
 
 
+def _bottom_row(like: Tensor) -> Tensor:
+    """[C, 1, 4] rows (0, 0, 0, 1) on ``like``'s device, made there (no upload of host data)."""
+    bottom = like.new_zeros(like.shape[0], 1, 4)
+    bottom[..., 3].fill_(1.0)
+    return bottom
+
+
 def c2w_opencv(c2w: Tensor) -> Tensor:
     """[C, 3|4, 4] camera-to-world (OpenGL axes) -> [C, 4, 4] camera-to-world (OpenCV axes)."""
-    bottom = c2w.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(c2w.shape[0], 1, 4)
-    return torch.cat([torch.cat([c2w[:, :3, :3] * c2w.new_tensor(GL_TO_CV), c2w[:, :3, 3:4]], dim=-1), bottom], dim=1)
+    rot = c2w[:, :3, :3]
+    flipped = torch.cat([rot[..., :1], -rot[..., 1:3]], dim=-1)  # columns times GL_TO_CV = (1, -1, -1)
+    return torch.cat([torch.cat([flipped, c2w[:, :3, 3:4]], dim=-1), _bottom_row(c2w)], dim=1)
 
 
 def viewmats_from_c2w(c2w: Tensor) -> Tensor:
@@ -124,8 +132,7 @@ def viewmats_from_c2w(c2w: Tensor) -> Tensor:
     rot, trans = cv[:, :3, :3], cv[:, :3, 3:4]
     rot_inv = rot.transpose(1, 2)
     top = torch.cat([rot_inv, -rot_inv @ trans], dim=-1)
-    bottom = c2w.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(c2w.shape[0], 1, 4)
-    return torch.cat([top, bottom], dim=1)
+    return torch.cat([top, _bottom_row(c2w)], dim=1)
 
 
 # ----------------------------------------------------------------------------------------------

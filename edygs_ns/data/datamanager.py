@@ -91,6 +91,14 @@ class EdygsDataManager(FullImageDatamanager):
         self.blurry_index: torch.Tensor = meta["blurry_index"]
         self.latent_index: torch.Tensor = meta["latent_index"]
         self.pairs: List[Tuple[int, int]] = [(i, int(n)) for i, n in enumerate(meta["latent_to_pair"].tolist()) if n >= 0]
+        # what a training step needs, ready where it is used: the exposure and place of every
+        # latent on the host (the pair is drawn there), the pairs' indices and the cameras on the
+        # training device, so a step uploads nothing but its images
+        self._blurry_of: List[int] = self.blurry_index.tolist()
+        self._latent_of: List[int] = self.latent_index.tolist()
+        self._pair_row: Dict[Tuple[int, int], int] = {pair: row for row, pair in enumerate(self.pairs)}
+        self._pair_indices = torch.tensor(self.pairs, dtype=torch.long).reshape(-1, PAIR_SIZE).to(self.device)
+        self._device_cameras = self.train_cameras.to(self.device)
         image_source = getattr(self.dataparser.config, "image_source", "latent")
         self.serves_pairs = bool(config.pair_events and image_source == "latent")
         self.event_maps: Optional[torch.Tensor] = None
@@ -201,7 +209,8 @@ class EdygsDataManager(FullImageDatamanager):
 
     def train_image(self, idx: int) -> torch.Tensor:
         """Training image ``idx`` as float32 [H, W, 3|4] in [0, 1] on the training device."""
-        image = self.cached_train[idx]["image"].to(self.device)
+        cached = self.cached_train[idx]["image"]
+        image = cached.to(self.device, non_blocking=cached.is_pinned())  # pinned: an asynchronous copy
         return image.float() / UINT8_MAX if image.dtype == torch.uint8 else image
 
     def next_train(self, step: int) -> Tuple[Cameras, Dict]:
@@ -212,15 +221,15 @@ class EdygsDataManager(FullImageDatamanager):
             return camera, {"image": self.train_image(idx)[None], "image_idx": torch.tensor([idx], dtype=torch.long)}
         assert self.event_maps is not None
         first, second = self.next_pair()
-        indices = torch.tensor([first, second], dtype=torch.long)
-        cameras = self.train_cameras[indices].to(self.device)
+        indices = self._pair_indices[self._pair_row[(first, second)]]  # long [2] on the training device
+        cameras = self._device_cameras[indices]
         cameras.metadata = {"cam_idx": indices.reshape(PAIR_SIZE, 1)}
         batch = {
             "image": torch.stack([self.train_image(first), self.train_image(second)]),
-            "event_map": self.event_maps[int(self.blurry_index[first]), int(self.latent_index[first])],
-            "image_idx": indices.to(self.device),
+            "event_map": self.event_maps[self._blurry_of[first], self._latent_of[first]],
+            "image_idx": indices,
         }
-        exposure = int(self.blurry_index[first])
+        exposure = self._blurry_of[first]
         if 0 <= exposure < len(self.blurry_frames):
             batch["blurry"] = self.blurry_frames[exposure][None]
         return cameras, batch

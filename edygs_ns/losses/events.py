@@ -14,6 +14,8 @@ with events; we found all-pixel L1 more stable for the static background).
 
 from __future__ import annotations
 
+import functools
+
 import torch
 from jaxtyping import Float
 from torch import Tensor
@@ -24,10 +26,15 @@ LUMA_WEIGHTS = (0.299, 0.587, 0.114)
 DEFAULT_LOG_EPS = 1e-3
 
 
+@functools.lru_cache(maxsize=None)
+def _luma_weights(device: torch.device, dtype: torch.dtype) -> Tensor:
+    """LUMA_WEIGHTS as a [3] tensor, made once per device and dtype (no upload per call)."""
+    return torch.tensor(LUMA_WEIGHTS, dtype=dtype, device=device)
+
+
 def luma(image: Float[Tensor, "*B H W 3"]) -> Float[Tensor, "*B H W"]:
     """Grey intensity of a linear RGB image."""
-    weights = image.new_tensor(LUMA_WEIGHTS)
-    return (image * weights).sum(dim=-1)
+    return (image * _luma_weights(image.device, image.dtype)).sum(dim=-1)
 
 
 def log_intensity(image: Float[Tensor, "*B H W 3"], log_eps: float = DEFAULT_LOG_EPS) -> Float[Tensor, "*B H W"]:

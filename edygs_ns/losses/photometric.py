@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from typing import Optional
 
 import torch
@@ -21,10 +22,21 @@ def _to_nchw(image: Tensor) -> Tensor:
     return image.permute(0, 3, 1, 2)
 
 
+@functools.lru_cache(maxsize=None)
+def _ssim_window(channels: int, dims: int, device: torch.device, dtype: torch.dtype) -> Tensor:
+    """pytorch_msssim's Gaussian window ([C, 1, 1, 11] for images of ``dims`` = 4 dimensions), made
+    as it makes it, once per shape, device and dtype (left to it, it makes the window on the host
+    and uploads it on every call)."""
+    from pytorch_msssim.ssim import _fspecial_gauss_1d
+
+    window = _fspecial_gauss_1d(SSIM_WINDOW, SSIM_SIGMA).repeat([channels] + [1] * (dims - 1))
+    return window.to(device=device, dtype=dtype)
+
+
 def dssim(pred: Float[Tensor, "*B H W C"], target: Float[Tensor, "*B H W C"], per_image: bool = False) -> Tensor:
     """1 - SSIM (images in [0, 1]): averaged over the batch, or one value per image [B]."""
-    value = ssim(_to_nchw(pred), _to_nchw(target), data_range=1.0, size_average=not per_image,
-                 win_size=SSIM_WINDOW, win_sigma=SSIM_SIGMA)
+    x, y = _to_nchw(pred), _to_nchw(target)
+    value = ssim(x, y, data_range=1.0, size_average=not per_image, win=_ssim_window(x.shape[1], x.dim(), x.device, x.dtype))
     return 1.0 - value
 
 

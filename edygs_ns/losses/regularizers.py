@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 from jaxtyping import Float
 from torch import Tensor
@@ -26,14 +28,19 @@ def motion_loss(
     d_rot: Float[Tensor, "N 4"],
     d_scale: Float[Tensor, "N 3"],
     mask: Float[Tensor, "N"],
+    weight: Optional[Float[Tensor, "N"]] = None,
 ) -> Tensor:
     """‖(1−m)Δμ‖² + ‖(1−m)Δr‖² + ‖(1−m)Δs‖², averaged over Gaussians (Eq. 6-7).
 
     Args:
         mask: per-Gaussian dynamic probability m in [0, 1].
+        weight: 1 for the Gaussians that count, 0 for the others (the masked deformation's
+            subset); the mean is over those that count (0 when none do). None: all count.
     """
     if d_xyz.shape[0] == 0:
         return d_xyz.sum()
     static = (1.0 - mask)[:, None]
     total = (static * d_xyz).square().sum(-1) + (static * d_rot).square().sum(-1) + (static * d_scale).square().sum(-1)
-    return total.mean()
+    if weight is None:
+        return total.mean()
+    return (total * weight).sum() / weight.sum().clamp_min(1.0)

@@ -8,7 +8,7 @@ identity when training switches it on (tests enforce this).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Tuple
+from typing import Optional, Tuple, Union
 
 import torch
 from jaxtyping import Float
@@ -65,11 +65,15 @@ class DeformationField(nn.Module):
             nn.init.zeros_(head.bias)
 
     def forward(
-        self, means: Float[Tensor, "N 3"], time: float
+        self, means: Float[Tensor, "N 3"], time: Union[float, Tensor]
     ) -> Tuple[Float[Tensor, "N 3"], Float[Tensor, "N 4"], Float[Tensor, "N 3"]]:
-        """Offsets at ``time`` for Gaussians centred at ``means`` (no gradient flows into means)."""
+        """Offsets at ``time`` (normalised, a float or a one-element tensor kept on the device) for
+        Gaussians centred at ``means`` (no gradient flows into means)."""
         means = means.detach()
-        t = means.new_full((means.shape[0], 1), float(time))
+        if isinstance(time, Tensor):
+            t = time.detach().to(means.dtype).reshape(1, 1).expand(means.shape[0], 1)
+        else:
+            t = means.new_full((means.shape[0], 1), float(time))
         encoded = torch.cat(
             [positional_encoding(means, self.config.xyz_frequencies), positional_encoding(t, self.config.time_frequencies)],
             dim=-1,
@@ -128,6 +132,8 @@ class RigidMotion(nn.Module):
         self.register_buffer("reach", torch.zeros(bodies))
         self.register_buffer("size", torch.ones(bodies))
         self.register_buffer("times", torch.zeros(count))
+        # host copy of whether a body was set: the reach changes only in set() and when loading
+        self._active: Optional[bool] = None
 
     @property
     def bodies(self) -> int:
@@ -135,7 +141,15 @@ class RigidMotion(nn.Module):
 
     @property
     def active(self) -> bool:
-        return self.times.numel() > 0 and bool((self.reach > 0).any())
+        """Whether some body moves (reach > 0). Read from the device once after set() or a load,
+        then kept on the host, so a training step does not wait for it."""
+        if self._active is None:
+            self._active = self.times.numel() > 0 and bool((self.reach > 0).any())
+        return self._active
+
+    def _load_from_state_dict(self, *args, **kwargs) -> None:
+        self._active = None
+        super()._load_from_state_dict(*args, **kwargs)
 
     @property
     def translations(self) -> Tensor:
@@ -154,6 +168,7 @@ class RigidMotion(nn.Module):
         if not 0 <= body < self.bodies:
             raise ValueError(f"RigidMotion.set: body {body} out of range (0..{self.bodies - 1})")
         order = torch.argsort(times)
+        self._active = self.times.numel() > 0  # this body's reach is positive: known on the host
         self.centre[body] = centre
         self.reach[body] = float(reach)
         self.size[body] = float(size)
@@ -177,16 +192,21 @@ class RigidMotion(nn.Module):
         for name, value in current.items():
             state_dict.setdefault(prefix + name, value)
 
-    def at(self, time: float) -> Tuple[Tensor, Tensor]:
-        """Interpolated rotation vectors [bodies, 3] and translations [bodies, 3] at ``time`` (on the
-        buffers' device, no host round trip)."""
+    def at(self, time: Union[float, Tensor]) -> Tuple[Tensor, Tensor]:
+        """Interpolated rotation vectors [bodies, 3] and translations [bodies, 3] at ``time`` (a float,
+        or a one-element tensor; on the buffers' device, no host round trip)."""
         times = self.times
-        t = torch.as_tensor(float(time), device=times.device).clamp(times[0], times[-1])
-        hi = torch.searchsorted(times, t[None]).clamp(min(1, len(times) - 1), len(times) - 1)[0]
+        if isinstance(time, Tensor):
+            t = time.detach().to(device=times.device, dtype=times.dtype).reshape(1)
+        else:
+            t = torch.full((1,), float(time), dtype=times.dtype, device=times.device)
+        t = torch.minimum(torch.maximum(t, times[:1]), times[-1:])  # [1], held at the ends
+        hi = torch.searchsorted(times, t).clamp(min(1, len(times) - 1), len(times) - 1)  # [1]
         lo = (hi - 1).clamp_min(0)
         w = ((t - times[lo]) / (times[hi] - times[lo]).clamp_min(1e-12)).clamp(0.0, 1.0)
         translations = self.translations
-        return torch.lerp(self.rotvecs[:, lo], self.rotvecs[:, hi], w), torch.lerp(translations[:, lo], translations[:, hi], w)
+        rotvec = torch.lerp(self.rotvecs[:, lo], self.rotvecs[:, hi], w[:, None])[:, 0]
+        return rotvec, torch.lerp(translations[:, lo], translations[:, hi], w[:, None])[:, 0]
 
     def assign(self, means: Float[Tensor, "N 3"]) -> Tuple[Tensor, Tensor]:
         """Body index [N] of each canonical centre (nearest in units of reach) and whether it lies
@@ -197,7 +217,7 @@ class RigidMotion(nn.Module):
         return nearest, scaled.gather(1, nearest[:, None])[:, 0] <= 1.0
 
     def forward(
-        self, means: Float[Tensor, "N 3"], quats: Float[Tensor, "N 4"], time: float
+        self, means: Float[Tensor, "N 3"], quats: Float[Tensor, "N 4"], time: Union[float, Tensor]
     ) -> Tuple[Float[Tensor, "N 3"], Float[Tensor, "N 4"]]:
         """Offsets (Δμ, Δq) of the rigid motions at ``time`` (zero outside every reach or when empty)."""
         if not self.active:

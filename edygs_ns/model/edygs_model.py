@@ -201,12 +201,16 @@ class EdygsModel(SplatExportView):
         # mask-consistency targets M̂ fixed at the dynamic switch, one per training latent [N, H, W]
         # (motion evidence near the movers, or the static model's rendered mask: seeding.consistency_target)
         self.register_buffer("static_masks", torch.zeros(0, 0, 0, dtype=torch.float16))
+        # RGB + motion-mask channel behind the Gaussians [4], on the device (no upload per render)
+        rgba = [1.0, 1.0, 1.0, 0.0] if self.config.background_color == "white" else [0.0, 0.0, 0.0, 0.0]
+        self.register_buffer("background_rgba", torch.tensor(rgba), persistent=False)
         self.step = 0
         self.optimizers: Dict[str, torch.optim.Optimizer] = {}
         # densification statistics of the step's render, read by the strategy after backward (as in splatfacto)
         self._info: Optional[dict] = None
         self._train_cameras: Optional[Cameras] = None
         self._train_image: Optional[Callable[[int], Tensor]] = None  # set by bind_training_data
+        self._train_size: Optional[Tuple[int, int]] = None  # (width, height) of every training latent
 
     @property
     def num_points(self) -> int:
@@ -243,6 +247,10 @@ class EdygsModel(SplatExportView):
         which the phase switch, the evidence refresh and the exposure cache render against."""
         self._train_cameras = cameras
         self._train_image = image
+        # read once here, so a training step does not read the cameras' size from the device
+        widths, heights = cameras.width.reshape(-1), cameras.height.reshape(-1)
+        same = len(widths) > 0 and bool((widths == widths[0]).all()) and bool((heights == heights[0]).all())
+        self._train_size = (int(widths[0]), int(heights[0])) if same else None
 
     def get_training_callbacks(self, attrs: TrainingCallbackAttributes) -> List[TrainingCallback]:
         """The densification step after each iteration; the phases are driven by the pipeline's
@@ -463,10 +471,30 @@ class EdygsModel(SplatExportView):
 
     # ------------------------------------------------------------ rendering
     def camera_indices(self, camera: Cameras) -> Optional[Tensor]:
-        """Training-camera index of each camera [C], or None (viewer / eval cameras)."""
+        """Training-camera index of each camera [C] (on the device the metadata holds them on), or
+        None (viewer / eval cameras)."""
         if camera.metadata is None or "cam_idx" not in camera.metadata:
             return None
-        return torch.as_tensor(camera.metadata["cam_idx"], dtype=torch.long).reshape(-1).cpu()
+        return torch.as_tensor(camera.metadata["cam_idx"], dtype=torch.long).reshape(-1)
+
+    def image_size(self, camera: Cameras) -> Tuple[int, int]:
+        """(width, height) in pixels of ``camera``'s images: for training latents while training,
+        the size read at bind time; otherwise read from the camera (a host read on CUDA)."""
+        if self.training and self._train_size is not None and camera.metadata and "cam_idx" in camera.metadata:
+            return self._train_size
+        return int(camera.width[0, 0]), int(camera.height[0, 0])
+
+    def intrinsics(self, camera: Cameras) -> Tensor:
+        """[C, 3, 3] pixel intrinsics on the model's device, made from the camera's fx, fy, cx, cy
+        where they are (nerfstudio's ``get_intrinsics_matrices`` fills a host tensor)."""
+        fx, fy, cx, cy = (getattr(camera, name).reshape(-1).to(self.device) for name in ("fx", "fy", "cx", "cy"))
+        zero, one = torch.zeros_like(fx), torch.ones_like(fx)
+        return torch.stack([fx, zero, cx, zero, fy, cy, zero, zero, one], dim=-1).reshape(-1, 3, 3).float()
+
+    def masked_deformation(self) -> bool:
+        """Whether the deformation runs on every Gaussian, masked (config.deform_subset)."""
+        choice = self.config.deform_subset
+        return choice == "masked" or (choice == "auto" and self.device.type == "cuda")
 
     def camera_to_worlds(self, camera: Cameras) -> Tensor:
         """[C, 3, 4] poses the model renders with: refined for training latents while training, as given otherwise."""
@@ -481,9 +509,12 @@ class EdygsModel(SplatExportView):
             return c2w
         return adjust_poses(c2w, self.camera_optimizer(indices).to(c2w.device))
 
-    def deformed_gaussians(self, time: float, deform: bool) -> Dict[str, Tensor]:
-        """Activated Gaussians at ``time``: means [N,3], quats [N,4], scales [N,3], opacities [N],
-        mask [N]; plus the offsets d_* of the deformed subset and its mask values for the motion loss."""
+    def deformed_gaussians(self, time: Union[float, Tensor], deform: bool) -> Dict[str, Tensor]:
+        """Activated Gaussians at ``time`` (normalised; a float or a one-element tensor on the
+        device): means [N,3], quats [N,4], scales [N,3], opacities [N], mask [N]; plus the offsets
+        d_* of the deformed subset and its mask values for the motion loss. With the masked
+        deformation (:meth:`masked_deformation`) the offsets cover all N Gaussians, zero outside
+        the subset, and "deformed_weight" [N] is 1 in the subset, 0 elsewhere."""
         params = self.gauss_params
         means = params["means"]
         quats = torch.nn.functional.normalize(params["quats"], dim=-1)
@@ -494,6 +525,8 @@ class EdygsModel(SplatExportView):
         out = {"means": means, "quats": quats, "scales": scales, "opacities": torch.sigmoid(params["opacities"]).squeeze(-1), "mask": mask}
         if not deform:
             return out
+        if self.masked_deformation():
+            return self._deform_masked(out, time)
         if self.config.use_motion_mask and self.config.deform_mask_threshold > 0:
             subset = torch.nonzero(mask.detach() >= self.config.deform_mask_threshold).squeeze(-1)
         else:
@@ -508,47 +541,73 @@ class EdygsModel(SplatExportView):
         out.update(d_xyz=d_xyz, d_rot=d_rot, d_scale=d_scale, deformed_mask=mask[subset])
         return out
 
+    def _deform_masked(self, out: Dict[str, Tensor], time: Union[float, Tensor]) -> Dict[str, Tensor]:
+        """The deformation of ``deformed_gaussians`` on every Gaussian, offsets kept where m >=
+        deform_mask_threshold: the same result without the subset's size on the host."""
+        means, quats, scales, mask = out["means"], out["quats"], out["scales"], out["mask"]
+        if self.config.use_motion_mask and self.config.deform_mask_threshold > 0:
+            selected = mask.detach() >= self.config.deform_mask_threshold  # [N]
+        else:
+            selected = torch.ones_like(mask, dtype=torch.bool)
+        d_xyz, d_rot, d_scale = self.deformation(means, time)
+        if self.rigid_motion.active:  # a host flag, set with the bodies (model/deformation.py)
+            rigid_xyz, rigid_rot = self.rigid_motion(means, quats, time)
+            d_xyz, d_rot = d_xyz + rigid_xyz, d_rot + rigid_rot
+        keep = selected[:, None]
+        d_xyz, d_rot, d_scale = (torch.where(keep, d, torch.zeros_like(d)) for d in (d_xyz, d_rot, d_scale))
+        out["means"], out["quats"] = means + d_xyz, quats + d_rot
+        out["scales"] = (scales + d_scale).clamp_min(MIN_DEFORMED_SCALE)
+        out.update(d_xyz=d_xyz, d_rot=d_rot, d_scale=d_scale, deformed_mask=mask, deformed_weight=selected.to(mask.dtype))
+        return out
+
     def render_cameras(self, camera: Cameras, deform: Optional[bool] = None) -> Dict[str, Tensor]:
-        """Render C cameras; every output has a leading camera dimension [C, H, W, ·], except
-        "deform_terms": per camera, the deformed subset's offsets and mask values (the motion loss's
-        input; empty when nothing deforms)."""
+        """Render C cameras in one rasteriser call; every output has a leading camera dimension
+        [C, H, W, ·], except "deform_terms": per camera, the deformed subset's offsets and mask
+        values (the motion loss's input; empty when nothing deforms).
+
+        A training step reads nothing back to the host here: the cameras' times stay on the
+        device, the image size of training latents is read at bind time, and the Gaussians of the
+        C cameras (deformed at each camera's time) go to the backend as [C, N, ·]."""
         if deform is None:
             # the deformation heads start at zero, so evaluating it before training is the identity
             deform = self.config.use_deformation and (self.phase is Phase.DYNAMIC or not self.training)
         backend = select_backend(self.device, self.config.rasterizer)
         c2w = self.camera_to_worlds(camera)
         viewmats = viewmats_from_c2w(c2w)
-        Ks = camera.get_intrinsics_matrices().to(self.device)
-        width, height = int(camera.width[0, 0]), int(camera.height[0, 0])
-        times = camera.times.reshape(-1).tolist() if camera.times is not None else [self.fallback_time] * camera.shape[0]
+        Ks = self.intrinsics(camera)
+        width, height = self.image_size(camera)
+        n_cams = camera.shape[0]
+        times: List[Union[float, Tensor]] = (
+            list(camera.times.reshape(-1).unbind()) if camera.times is not None else [self.fallback_time] * n_cams
+        )
         sh_degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree) if self.training else self.config.sh_degree
         coeffs = torch.cat([self.gauss_params["features_dc"][:, None], self.gauss_params["features_rest"]], dim=1)
-        background = torch.tensor(
-            [1.0, 1.0, 1.0, 0.0] if self.config.background_color == "white" else [0.0, 0.0, 0.0, 0.0], device=self.device
+        background = self.background_rgba.to(self.device)
+        gaussians = [self.deformed_gaussians(times[c], deform) for c in range(n_cams)]
+        features = torch.stack([
+            torch.cat([sh_to_rgb(coeffs, g["means"], c2w[c, :3, 3], sh_degree), g["mask"][:, None]], dim=-1)
+            for c, g in enumerate(gaussians)
+        ])  # [C, N, D]: the view-dependent colour and the motion mask
+        if n_cams == 1 or not deform:  # one set of Gaussians for every camera
+            geometry = [gaussians[0][k] for k in ("means", "quats", "scales")]
+            features = features[0] if n_cams == 1 else features
+        else:
+            geometry = [torch.stack([g[k] for g in gaussians]) for k in ("means", "quats", "scales")]
+        out: RasterOutputs = backend(
+            *geometry, gaussians[0]["opacities"], features, viewmats, Ks, width, height,
+            backgrounds=background[None].expand(n_cams, -1),
         )
-        results: Dict[str, List[Tensor]] = {k: [] for k in ("rgb", "mask", "depth", "accumulation")}
-        deform_terms: List[Dict[str, Tensor]] = []
-        for c in range(camera.shape[0]):
-            g = self.deformed_gaussians(times[c], deform)
-            center = c2w[c, :3, 3]
-            rgb = sh_to_rgb(coeffs, g["means"], center, sh_degree)
-            features = torch.cat([rgb, g["mask"][:, None]], dim=-1)
-            out: RasterOutputs = backend(
-                g["means"], g["quats"], g["scales"], g["opacities"], features,
-                viewmats[c : c + 1], Ks[c : c + 1], width, height, backgrounds=background[None],
-            )
-            if self.training and c == 0 and torch.is_grad_enabled() and self.gauss_params["means"].requires_grad:
-                self._info = strategy_info(out, width, height)
-                self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, self._info)
-            results["rgb"].append(out.render[0, ..., :3].clamp(0.0, 1.0))
-            results["mask"].append(out.render[0, ..., 3:4])
-            results["depth"].append(out.depth[0])
-            results["accumulation"].append(out.alpha[0])
-            if "d_xyz" in g:
-                deform_terms.append({k: g[k] for k in ("d_xyz", "d_rot", "d_scale", "deformed_mask")})
-        stacked: Dict[str, Union[Tensor, List]] = {k: torch.stack(v) for k, v in results.items()}
+        if self.training and torch.is_grad_enabled() and self.gauss_params["means"].requires_grad:
+            # densification statistics from the first camera, as when the cameras rendered one by one
+            self._info = strategy_info(out, width, height, counted_cameras=1)
+            self.strategy.step_pre_backward(self.gauss_params, self.optimizers, self.strategy_state, self.step, self._info)
+        stacked: Dict[str, Union[Tensor, List]] = {
+            "rgb": out.render[..., :3].clamp(0.0, 1.0), "mask": out.render[..., 3:4], "depth": out.depth,
+            "accumulation": out.alpha,
+        }
         stacked["rgb_static"] = stacked["rgb"] * (1.0 - stacked["mask"])
-        stacked["deform_terms"] = deform_terms
+        keys = ("d_xyz", "d_rot", "d_scale", "deformed_mask", "deformed_weight")
+        stacked["deform_terms"] = [{k: g[k] for k in keys if k in g} for g in gaussians if "d_xyz" in g]
         return stacked  # type: ignore[return-value]
 
     def get_outputs(self, camera: Cameras) -> Dict[str, Union[Tensor, List]]:  # type: ignore[override]
@@ -583,10 +642,24 @@ class EdygsModel(SplatExportView):
         gt = self._as_float_image(batch["image"], self.device)[..., :3]
         pred = outputs["rgb"]
         mse = (pred - gt.reshape(pred.shape)).square().mean()
-        metrics = {"psnr": -10.0 * torch.log10(mse.clamp_min(1e-10)), "gaussian_count": torch.tensor(float(self.num_points))}
-        metrics["phase"] = torch.tensor(float(list(Phase).index(self.phase)))
-        self.camera_optimizer.get_metrics_dict(metrics)
+        # host numbers as CPU scalars, the rest stays on the device: read only when logged
+        metrics = {"psnr": -10.0 * torch.log10(mse.clamp_min(1e-10)), "gaussian_count": torch.full((), float(self.num_points))}
+        metrics["phase"] = torch.full((), float(list(Phase).index(self.phase)))
+        self._camera_metrics(metrics)
         return metrics
+
+    def _camera_metrics(self, metrics: Dict[str, Tensor]) -> None:
+        """The pose-refinement metrics of nerfstudio's ``CameraOptimizer.get_metrics_dict`` (same
+        names; translations in world units, rotations in degrees), computed on the device (its own
+        copies the rotations to the host every step)."""
+        if self.camera_optimizer.config.mode == "off":
+            return
+        adjustment = self.camera_optimizer.pose_adjustment.detach()
+        trans, rot = adjustment[:, :3].norm(dim=-1), adjustment[:, 3:].norm(dim=-1)
+        metrics["camera_opt_translation_max"] = trans.max()
+        metrics["camera_opt_translation_mean"] = trans.mean()
+        metrics["camera_opt_rotation_mean"] = torch.rad2deg(rot.mean())
+        metrics["camera_opt_rotation_max"] = torch.rad2deg(rot.max())
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None) -> Dict[str, Tensor]:
         cfg = self.config
@@ -617,7 +690,7 @@ class EdygsModel(SplatExportView):
             terms = []
             for t in outputs["deform_terms"]:
                 m = t["deformed_mask"].detach() if cfg.detach_mask_in_motion_loss else t["deformed_mask"]
-                terms.append(motion_loss(t["d_xyz"], t["d_rot"], t["d_scale"], m))
+                terms.append(motion_loss(t["d_xyz"], t["d_rot"], t["d_scale"], m, weight=t.get("deformed_weight")))
             losses["motion"] = cfg.lambda_motion * torch.stack(terms).mean()
         if self.training:
             self.camera_optimizer.get_loss_dict(losses)
@@ -627,19 +700,19 @@ class EdygsModel(SplatExportView):
         return losses
 
     def _blur_term(self, linear: Tensor, indices: Tensor, blurry: Tensor) -> Tensor:
-        """Blur loss of the batch's exposure (renders in linear intensity), completed from the
-        render cache (which it updates)."""
+        """Blur loss of the batch's exposure (renders in linear intensity; a training batch holds
+        latents of one exposure), completed from the render cache (which it updates) on the device."""
         cache = self.exposure_cache
-        if not cache.filled:
+        if not cache.filled:  # once per run (or after a resume from a checkpoint without the cache)
             if self._train_image is None:
                 raise RuntimeError("the blur loss needs the training images (bind_training_data)")
             cache.fill(lambda i: decode_to_linear(self._train_image(i)[..., :3].to(self.device), self.color_space))
-        stacks = cache.complete(indices, linear)
+        stack, weights = cache.complete_on_device(indices, linear)
         cache.store(indices, linear)
         target = decode_to_linear(blurry.to(self.device).float().reshape(-1, *linear.shape[-3:]), self.color_space)
-        if target.shape[0] != len(stacks):
-            raise ValueError(f"the batch has {target.shape[0]} blurry frames for {len(stacks)} exposures")
-        return blur_loss(torch.stack(list(stacks.values())), target)
+        if target.shape[0] != 1:
+            raise ValueError(f"the batch has {target.shape[0]} blurry frames for the 1 exposure of a training batch")
+        return blur_loss(stack, target, weights)
 
     def _batch_indices(self, batch, rgb: Tensor) -> Optional[Tensor]:
         if "image_idx" not in batch:

@@ -34,7 +34,7 @@ slower for 0.2 dB.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Dict, Tuple
+from typing import Any, Dict, Optional, Tuple
 
 import torch
 from gsplat.strategy import DefaultStrategy
@@ -105,6 +105,30 @@ class PortableStrategy(DefaultStrategy):
             )
         return n_prune
 
+    def _update_state(self, params, state: Dict[str, Any], info: Dict[str, Any], packed: bool = False) -> None:
+        """gsplat's running gradient statistics, without a host round trip: its version gathers the
+        visible Gaussians (``torch.where`` on radii > 0, a device -> host read every step); here
+        the invisible ones add zero. Only the first ``info["counted_cameras"]`` cameras of the
+        call count (all when absent). Same sums: a Gaussian gets one term per counted camera."""
+        if packed or self.absgrad:
+            super()._update_state(params, state, info, packed=packed)
+            return
+        counted = info.get("counted_cameras", info["n_cameras"])
+        grads = info["means2d"].grad[:counted].clone()  # [C', N, 2] dL/d(pixel)
+        grads[..., 0] *= info["width"] / 2.0 * counted
+        grads[..., 1] *= info["height"] / 2.0 * counted
+        n_gaussian = len(list(params.values())[0])
+        for key in ("grad2d", "count") + (("radii",) if self.refine_scale2d_stop_iter > 0 else ()):
+            if state[key] is None:
+                state[key] = torch.zeros(n_gaussian, device=grads.device)
+        visible = info["radii"][:counted] > 0.0  # [C', N]
+        norms = torch.where(visible, grads.norm(dim=-1), torch.zeros((), device=grads.device))
+        state["grad2d"] += norms.sum(0)
+        state["count"] += visible.sum(0).to(state["count"].dtype)
+        if self.refine_scale2d_stop_iter > 0:
+            scaled = torch.where(visible, info["radii"][:counted] / float(max(info["width"], info["height"])), 0.0)
+            state["radii"] = torch.maximum(state["radii"], scaled.amax(0))
+
 
 def make_strategy(config: DensifyConfig, blur_loss: bool = False) -> PortableStrategy:
     """The densification strategy for ``config`` (device-agnostic); ``blur_loss``: the blur-formation
@@ -132,18 +156,21 @@ def make_strategy(config: DensifyConfig, blur_loss: bool = False) -> PortableStr
     )
 
 
-def strategy_info(outputs: RasterOutputs, width: int, height: int) -> Dict[str, Any]:
+def strategy_info(outputs: RasterOutputs, width: int, height: int, counted_cameras: Optional[int] = None) -> Dict[str, Any]:
     """The ``info`` dict gsplat's strategy reads, from one rasteriser call (packed=False).
 
     Keys: "means2d" [C, N, 2] (its .grad is read after backward), "radii" [C, N], "width",
-    "height", "n_cameras", "gaussian_ids" (None: not packed).
+    "height", "n_cameras", "gaussian_ids" (None: not packed), "counted_cameras": the statistics
+    come from the first this many cameras of the call (all when None).
     """
+    n_cameras = int(outputs.means2d.shape[0])
     return {
         "means2d": outputs.means2d,
         "radii": outputs.radii,
         "width": width,
         "height": height,
-        "n_cameras": int(outputs.means2d.shape[0]),
+        "n_cameras": n_cameras,
+        "counted_cameras": n_cameras if counted_cameras is None else counted_cameras,
         "gaussian_ids": None,
     }
 
