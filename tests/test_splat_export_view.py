@@ -229,6 +229,31 @@ def test_ns_render_interpolate_renders_at_the_fallback_time(deformed_run, tmp_pa
             np.testing.assert_allclose(image, expected, atol=PNG_TOLERANCE + 1e-6)  # ... but $EDYGS_TIME
 
 
+#: Run in a fresh interpreter: imports nerfstudio's exporter in the order ``argv[1]`` names, builds
+#: no model and reads no ``means``, then prints whether write_ply is wrapped and the module's class.
+REGISTRATION_PROBE = """
+import sys
+if sys.argv[1] == "exporter-first":  # as ns-export: the exporter's own imports load the plugin
+    import nerfstudio.scripts.exporter
+else:  # the plugin first (ns-train, a Python script), the exporter later
+    import nerfstudio.configs.method_configs
+    assert "nerfstudio.scripts.exporter" not in sys.modules
+    import nerfstudio.scripts.exporter
+from nerfstudio.scripts.exporter import ExportGaussianSplat
+from edygs_ns.model import ns_export_mask
+assert ns_export_mask._source is None  # no model was built
+print(ns_export_mask.is_installed(), type(sys.modules["nerfstudio.scripts.exporter"]).__name__)
+"""
+
+
+@pytest.mark.parametrize("order", ["exporter-first", "plugin-first"])
+def test_the_mask_column_is_registered_when_the_plugin_loads(order):
+    result = subprocess.run([sys.executable, "-c", REGISTRATION_PROBE, order], capture_output=True, text=True,
+                            timeout=300, env=dict(os.environ, OMP_NUM_THREADS="1"))  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert result.stdout.split() == ["True", "module"]  # wrapped, and a plain module again
+
+
 def test_exported_rows_match_a_filtered_subsequence():
     from edygs_ns.model.ns_export_mask import exported_rows
 

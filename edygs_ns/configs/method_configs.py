@@ -22,11 +22,13 @@ from edygs_ns.configs.run_length import CPU_DEFORMATION, CPU_ITERATIONS, shape_t
 from edygs_ns.data.datamanager import EdygsDataManagerConfig
 from edygs_ns.data.dataparser import EdygsDataParserConfig
 from edygs_ns.model.edygs_model import EdygsModelConfig
+from edygs_ns.model import ns_export_mask
 from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES
 from edygs_ns.model.phases import CAMERA_GROUP, DEFORMATION_GROUP, MASK_GROUP, RIGID_GROUP, PhaseSchedule
 from edygs_ns.training.pipeline import EdygsPipelineConfig
 
 allow_nerfstudio_checkpoints()
+ns_export_mask.install()  # ns-export gaussian-splat PLYs get the motion_mask column
 
 #: full-scale defaults (GPU); the CPU demo passes smaller numbers on the command line.
 MAX_ITERATIONS = 20000

@@ -16,8 +16,8 @@ behaviour. Every attribute ``SplatfactoModel`` defines is overridden here, in on
   calls ``.cuda()``: it must never run) and for splatfacto's internals (:data:`SPLATFACTO_INTERNALS`,
   which read splatfacto-only config and state and which only splatfacto's own methods call);
 * read-only properties giving the Gaussians as ``ns-export`` reads them (:data:`EXPORT_PROPERTIES`),
-  detached, with the deformation baked at :attr:`SplatExportView.fallback_time`; reading ``means``
-  also makes the exported PLY carry ``motion_mask`` (edygs_ns.model.ns_export_mask);
+  detached, with the deformation baked at :attr:`SplatExportView.fallback_time`; the exported PLY
+  also carries ``motion_mask``, taken from the last model built (edygs_ns.model.ns_export_mask);
 * ``set_background``: a no-op, renders keep ``config.background_color`` (the motion-mask channel
   needs a zero background).
 
@@ -44,7 +44,7 @@ from torch import Tensor
 from torch.nn import Parameter
 
 from edygs_ns.model.appearance import SH_C0, SH_OFFSET
-from edygs_ns.model.ns_export_mask import register_export_source
+from edygs_ns.model.ns_export_mask import set_export_source
 
 #: Environment variable overriding the model config's ``fallback_time`` (normalised clip time).
 TIME_ENV = "EDYGS_TIME"
@@ -133,6 +133,7 @@ class SplatExportView(SplatfactoModel):
         if "seed_points" in kwargs:
             self.seed_points = kwargs.pop("seed_points")
         super(SplatfactoModel, self).__init__(*args, **kwargs)
+        set_export_source(self)  # the model ns-export's motion_mask column comes from
 
     def populate_modules(self) -> None:
         raise NotImplementedError(
@@ -220,9 +221,7 @@ class SplatExportView(SplatfactoModel):
 
     @property
     def means(self) -> Tensor:
-        """[N, 3] centres at the fallback time. ns-export reads these first: that is where its PLY
-        learns to carry the motion mask (edygs_ns.model.ns_export_mask)."""
-        register_export_source(self)
+        """[N, 3] centres at the fallback time."""
         return self._baked()["means"]
 
     @property
