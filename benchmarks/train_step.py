@@ -1,6 +1,7 @@
 """Milliseconds per CPU training step on the demo scene, split into parts, per rasteriser backend.
 
-Usage: ``python benchmarks/train_step.py --out FILE.json [--backends torch cpu] [--threads 1]``
+Usage: ``python benchmarks/train_step.py --out FILE.json [--backends torch cpu] [--threads 1]
+[--deform-subset auto|gather|masked]``
 
 The scene is the demo's (``edygs-synth`` defaults, seed 0: 128x96, 12 frames x 5 latents),
 processed with the true poses (``--poses given``: no COLMAP, same images) into ``--scene-dir``
@@ -15,6 +16,10 @@ backward of its autograd Functions: projection, compositing), MLP forward (the d
 field), other forward (the model's remaining forward), losses, other backward (everything in
 backward but the rasteriser's: MLP, losses), optimiser (step and schedulers), callbacks
 (densification, the phase schedule).
+
+``--deform-subset`` picks how the dynamic phase deforms the Gaussians above the mask threshold
+(``EdygsModelConfig.deform_subset``): "gather" (the CPU default) or "masked", the CUDA default
+that needs no host round trip (docs/gpu.md, "Host synchronisations"); unset, the config's default.
 """
 
 from __future__ import annotations
@@ -97,6 +102,8 @@ def trainer_for(scene: Path, backend: str, args: argparse.Namespace, output: Pat
         schedule=replace(model.schedule, pose_init_iters=args.static_at, static_iters=args.dynamic_at - args.static_at),
         densify=replace(model.densify, refine_start_iter=args.refine_start),
     )
+    if args.deform_subset is not None:
+        model = replace(model, deform_subset=args.deform_subset)
     datamanager = replace(config.pipeline.datamanager, dataparser=replace(config.pipeline.datamanager.dataparser, data=scene))
     config.pipeline = replace(config.pipeline, model=model, datamanager=datamanager)
     config.machine.device_type = "cpu"
@@ -170,6 +177,8 @@ def main() -> None:
     parser.add_argument("--out", required=True, help="JSON file for the per-phase medians and every step")
     parser.add_argument("--backends", nargs="+", default=["torch", "cpu"], help="rasterizer config values")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (the demo runs 1)")
+    parser.add_argument("--deform-subset", choices=["auto", "gather", "masked"], default=None,
+                        help="the model's deform_subset (unset: the config's default)")
     parser.add_argument("--scene-dir", type=Path, default=Path("/tmp/edygs_train_step_scene"))
     parser.add_argument("--static-at", type=int, default=10, help="first step of the static phase")
     parser.add_argument("--dynamic-at", type=int, default=60, help="first step of the dynamic phase")
@@ -196,7 +205,7 @@ def main() -> None:
             row = results[backend][phase]
             CONSOLE.log(f"{backend} {phase}: " + ", ".join(f"{k} {row[k]}" for k in (*PARTS, "total", "gaussians")))
     with open(args.out, "w", encoding="utf-8") as f:
-        json.dump({"threads": args.threads, "results": results}, f, indent=1)
+        json.dump({"threads": args.threads, "deform_subset": args.deform_subset, "results": results}, f, indent=1)
 
 
 if __name__ == "__main__":

@@ -73,12 +73,8 @@ def _check_pair_parity(backend_name: str, device: str) -> None:
 
 @pytest.mark.parametrize("backend_name", ["torch", "cpu"])
 def test_a_pair_in_one_call_equals_two_calls(backend_name: str) -> None:
+    # gsplat's: tests/test_rasterizer_parity_cuda.py (run by scripts/gpu_check.sh)
     _check_pair_parity(backend_name, "cpu")
-
-
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="gsplat needs CUDA")
-def test_a_pair_in_one_gsplat_call_equals_two_calls() -> None:
-    _check_pair_parity("gsplat", "cuda")
 
 
 def test_the_densification_gradient_of_a_pair_is_its_first_camera() -> None:
