@@ -7,8 +7,13 @@ same calls can be counted: a ``TorchDispatchMode`` sees the ATen ops that need t
 (``_local_scalar_dense`` behind item / bool / int / float, ``nonzero``, boolean ``index``,
 ``lift_fresh`` behind tensors made from Python data) and ``Tensor.tolist`` / ``numpy`` are
 patched. Only calls made while code of ``edygs_ns`` is on the stack count (torch's optimiser and
-nerfstudio's trainer are not ours); the rasteriser backends' insides are left out (on CUDA the
-step runs gsplat's kernels; its tile intersection reads one count on the host, upstream).
+nerfstudio's trainer are not ours). The step runs the compiled CPU rasteriser, whose Python side
+counts too; the torch reference rasteriser's insides would not (host code, never the CUDA
+default). On CUDA the step runs gsplat's kernels, whose tile intersection reads one count on the
+host (upstream, inside ``isect_tiles``), once per step now that the pair is one call.
+
+Not visible here: copies of tensors made on the CPU onto the device (on the CPU they are no-ops);
+those in the step were removed by reading (docs/gpu.md, "Host synchronisations").
 
 Steps with densification, the phase switch, the evidence refresh or logging may synchronise;
 the counted steps have none of them.
@@ -35,8 +40,8 @@ from edygs_ns.model.phases import Phase  # noqa: E402
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 PACKAGE = str(Path(edygs_ns.__file__).parent)
-#: the rasteriser backends' insides: host code on the CPU, gsplat's kernels on CUDA.
-BACKEND_FILES = tuple(str(Path(PACKAGE) / "render" / name) for name in ("torch_backend.py", "projection.py", "cpu_backend.py"))
+#: the torch reference rasteriser's insides: host code by design (gsplat's kernels run on CUDA).
+BACKEND_FILES = tuple(str(Path(PACKAGE) / "render" / name) for name in ("torch_backend.py",))
 POSE_INIT, STATIC = 2, 6
 #: ordinary steps: no switch (step POSE_INIT + STATIC), no densification (refine_start 500),
 #: the exposure cache already filled (step 0), no logging (the loop below logs nothing).
