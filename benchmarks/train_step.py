@@ -1,7 +1,8 @@
-"""Milliseconds per CPU training step on the demo scene, split into parts, per rasteriser backend.
+"""Milliseconds per training step on the demo scene, split into parts, per rasteriser backend
+(on the CPU; ``--device cuda`` on a GPU).
 
 Usage: ``python benchmarks/train_step.py --out FILE.json [--backends torch cpu] [--threads 1]
-[--deform-subset auto|gather|masked]``
+[--deform-subset auto|gather|masked] [--device cpu|cuda]``
 
 The scene is the demo's (``edygs-synth`` defaults, seed 0: 128x96, 12 frames x 5 latents),
 processed with the true poses (``--poses given``: no COLMAP, same images) into ``--scene-dir``
@@ -106,7 +107,7 @@ def trainer_for(scene: Path, backend: str, args: argparse.Namespace, output: Pat
         model = replace(model, deform_subset=args.deform_subset)
     datamanager = replace(config.pipeline.datamanager, dataparser=replace(config.pipeline.datamanager.dataparser, data=scene))
     config.pipeline = replace(config.pipeline, model=model, datamanager=datamanager)
-    config.machine.device_type = "cpu"
+    config.machine.device_type = args.device
     config.max_num_iterations = args.dynamic_steps[1] + 1
     config.vis = "tensorboard"
     config.output_dir = output
@@ -116,8 +117,10 @@ def trainer_for(scene: Path, backend: str, args: argparse.Namespace, output: Pat
     return trainer
 
 
-def time_steps(trainer, stop: int, clock: Clock) -> List[Dict[str, float]]:
-    """Run steps 0 .. stop - 1 as nerfstudio's Trainer.train does; per-step part times (ms)."""
+def time_steps(trainer, stop: int, clock: Clock, sync: bool = False) -> List[Dict[str, float]]:
+    """Run steps 0 .. stop - 1 as nerfstudio's Trainer.train does; per-step part times (ms).
+    ``sync``: wait for the GPU at the end of every step, so "total" is the step's GPU time too
+    (the parts are then the host's time to queue the work, not the GPU's to do it)."""
     import edygs_ns.model.edygs_model as edygs_model
     from edygs_ns.render import cpu_backend, projection, torch_backend
 
@@ -145,6 +148,8 @@ def time_steps(trainer, stop: int, clock: Clock) -> List[Dict[str, float]]:
         with clock.part("callbacks"):
             for callback in trainer.callbacks:
                 callback.run_callback_at_location(step, location=TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
+        if sync:
+            torch.cuda.synchronize()
         total = time.perf_counter() - start
         t = dict(clock.step)
         fwd, model_fwd = t.get("fwd + losses", 0.0), t.get("model fwd", 0.0)
@@ -177,6 +182,8 @@ def main() -> None:
     parser.add_argument("--out", required=True, help="JSON file for the per-phase medians and every step")
     parser.add_argument("--backends", nargs="+", default=["torch", "cpu"], help="rasterizer config values")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (the demo runs 1)")
+    parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                        help="training device (cuda: backends auto / gsplat / torch; a sync ends every step)")
     parser.add_argument("--deform-subset", choices=["auto", "gather", "masked"], default=None,
                         help="the model's deform_subset (unset: the config's default)")
     parser.add_argument("--scene-dir", type=Path, default=Path("/tmp/edygs_train_step_scene"))
@@ -194,7 +201,7 @@ def main() -> None:
     for backend in args.backends:
         torch.manual_seed(0)
         trainer = trainer_for(scene, backend, args, args.scene_dir / "outputs")
-        steps = time_steps(trainer, args.dynamic_steps[1], Clock())
+        steps = time_steps(trainer, args.dynamic_steps[1], Clock(), sync=args.device == "cuda")
         results[backend] = {
             "static": summarise(steps, args.static_steps),
             "dynamic": summarise(steps, args.dynamic_steps),
@@ -205,7 +212,8 @@ def main() -> None:
             row = results[backend][phase]
             CONSOLE.log(f"{backend} {phase}: " + ", ".join(f"{k} {row[k]}" for k in (*PARTS, "total", "gaussians")))
     with open(args.out, "w", encoding="utf-8") as f:
-        json.dump({"threads": args.threads, "deform_subset": args.deform_subset, "results": results}, f, indent=1)
+        json.dump({"threads": args.threads, "device": args.device, "deform_subset": args.deform_subset, "results": results},
+                  f, indent=1)
 
 
 if __name__ == "__main__":
