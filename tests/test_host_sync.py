@@ -164,22 +164,49 @@ def test_the_counter_sees_host_reads():
     assert counter.events and all("losses/metrics.py" in e for e in counter.events)
 
 
-def test_ordinary_steps_make_no_host_round_trip(trainer):
+def _run_to(trainer, stop: int, counted=()) -> dict:
+    """Train up to step ``stop`` (exclusive) from where the module's trainer is; the host round
+    trips of the steps in ``counted``, by step. The switch step gets one rigid body when the tiny
+    run found none, so the rigid motion is exercised."""
     model = trainer.pipeline.model
     seen = {}
-    for step in range(DYNAMIC_STEPS[-1] + 1):
-        if step in STATIC_STEPS or step in DYNAMIC_STEPS:
+    for step in range(getattr(trainer, "next_step", 0), stop):
+        if step in counted:
             seen[step] = _counted(trainer, step)
         else:
             _step(trainer, step)
         if step == POSE_INIT + STATIC and not model.rigid_motion.active:
-            # the tiny run may find no mover: give it one body so the rigid motion is exercised
             n = model.rigid_motion.times.shape[0]
             times = trainer.pipeline.datamanager.train_cameras.times.reshape(-1)
             model.rigid_motion.set(torch.zeros(3), 10.0, 1.0, times, torch.full((n, 3), 0.01), torch.full((n, 3), 0.01))
-    assert model.phase is Phase.DYNAMIC and model.switched and model.rigid_motion.active
+        trainer.next_step = step + 1
     assert all(not model.config.densify.refine_start_iter <= s for s in seen)  # no densification step counted
-    report = {s: Counter(events) for s, events in seen.items() if events}
-    assert not report, "host round trips per step:\n" + "\n".join(
-        f"  step {s}: " + "; ".join(f"{n} x {e}" for e, n in c.most_common()) for s, c in report.items()
+    return seen
+
+
+def _report(seen: dict) -> str:
+    return "host round trips per step:\n" + "\n".join(
+        f"  step {s}: " + "; ".join(f"{n} x {e}" for e, n in Counter(events).most_common()) for s, events in seen.items()
     )
+
+
+def test_ordinary_steps_make_no_host_round_trip(trainer):
+    model = trainer.pipeline.model
+    seen = _run_to(trainer, DYNAMIC_STEPS[-1] + 1, counted=STATIC_STEPS + DYNAMIC_STEPS)
+    assert model.phase is Phase.DYNAMIC and model.switched and model.rigid_motion.active
+    assert set(seen) == set(STATIC_STEPS + DYNAMIC_STEPS)
+    assert not any(seen.values()), _report({s: e for s, e in seen.items() if e})
+
+
+def test_the_gathered_deformation_reads_the_subset_size_once_per_step(trainer):
+    # deform_subset "gather" (the CPU default): one nonzero per step, shared by the pair's cameras
+    model = trainer.pipeline.model
+    _run_to(trainer, DYNAMIC_STEPS[-1] + 1)
+    model.config = replace(model.config, deform_subset="gather")
+    try:
+        start = trainer.next_step
+        seen = _run_to(trainer, start + 2, counted=(start, start + 1))
+    finally:
+        model.config = replace(model.config, deform_subset="masked")
+    for events in seen.values():
+        assert len(events) == 1 and events[0].startswith("nonzero at model/edygs_model.py"), _report(seen)

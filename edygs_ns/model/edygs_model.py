@@ -274,6 +274,8 @@ class EdygsModel(SplatExportView):
         return self.config.seeding.enabled and self.config.use_motion_mask and self.config.use_deformation
 
     def after_step(self, step: int) -> None:
+        """Densification statistics of the step (on the device); on refinement steps (every
+        refine_every) gsplat grows and prunes, which reads counts on the host: a rare sync."""
         if self._info is None:
             return
         self.strategy.step_post_backward(
@@ -509,12 +511,24 @@ class EdygsModel(SplatExportView):
             return c2w
         return adjust_poses(c2w, self.camera_optimizer(indices).to(c2w.device))
 
-    def deformed_gaussians(self, time: Union[float, Tensor], deform: bool) -> Dict[str, Tensor]:
+    def gate_subset(self, mask: Tensor) -> Tensor:
+        """Indices [S] of the Gaussians the gathered deformation moves: m >= deform_mask_threshold
+        (every Gaussian when the gate is off). ``mask``: [N] motion-mask values. S is read on the
+        host (``nonzero``): one sync per call on CUDA."""
+        if self.config.use_motion_mask and self.config.deform_mask_threshold > 0:
+            return torch.nonzero(mask.detach() >= self.config.deform_mask_threshold).squeeze(-1)
+        return torch.arange(mask.shape[0], device=mask.device)
+
+    def deformed_gaussians(
+        self, time: Union[float, Tensor], deform: bool, subset: Optional[Tensor] = None
+    ) -> Dict[str, Tensor]:
         """Activated Gaussians at ``time`` (normalised; a float or a one-element tensor on the
         device): means [N,3], quats [N,4], scales [N,3], opacities [N], mask [N]; plus the offsets
-        d_* of the deformed subset and its mask values for the motion loss. With the masked
-        deformation (:meth:`masked_deformation`) the offsets cover all N Gaussians, zero outside
-        the subset, and "deformed_weight" [N] is 1 in the subset, 0 elsewhere."""
+        d_* of the deformed subset and its mask values for the motion loss. ``subset``: the
+        gathered deformation's :meth:`gate_subset`, when the caller has it (None: computed here).
+        With the masked deformation (:meth:`masked_deformation`) the offsets cover all N
+        Gaussians, zero outside the subset, and "deformed_weight" [N] is 1 in the subset, 0
+        elsewhere."""
         params = self.gauss_params
         means = params["means"]
         quats = torch.nn.functional.normalize(params["quats"], dim=-1)
@@ -527,10 +541,8 @@ class EdygsModel(SplatExportView):
             return out
         if self.masked_deformation():
             return self._deform_masked(out, time)
-        if self.config.use_motion_mask and self.config.deform_mask_threshold > 0:
-            subset = torch.nonzero(mask.detach() >= self.config.deform_mask_threshold).squeeze(-1)
-        else:
-            subset = torch.arange(self.num_points, device=means.device)
+        if subset is None:
+            subset = self.gate_subset(mask)
         d_xyz, d_rot, d_scale = self.deformation(means[subset], time)
         if self.rigid_motion.active:
             rigid_xyz, rigid_rot = self.rigid_motion(means[subset], quats[subset], time)
@@ -583,7 +595,11 @@ class EdygsModel(SplatExportView):
         sh_degree = min(self.step // self.config.sh_degree_interval, self.config.sh_degree) if self.training else self.config.sh_degree
         coeffs = torch.cat([self.gauss_params["features_dc"][:, None], self.gauss_params["features_rest"]], dim=1)
         background = self.background_rgba.to(self.device)
-        gaussians = [self.deformed_gaussians(times[c], deform) for c in range(n_cams)]
+        subset = None
+        if deform and n_cams > 1 and not self.masked_deformation():
+            # the gate depends on the mask alone, not on the time: one host read for the C cameras
+            subset = self.gate_subset(torch.sigmoid(self.gauss_params["mask_logit"]).squeeze(-1))
+        gaussians = [self.deformed_gaussians(times[c], deform, subset) for c in range(n_cams)]
         features = torch.stack([
             torch.cat([sh_to_rgb(coeffs, g["means"], c2w[c, :3, 3], sh_degree), g["mask"][:, None]], dim=-1)
             for c, g in enumerate(gaussians)

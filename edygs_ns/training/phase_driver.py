@@ -4,7 +4,9 @@ Before every iteration: refuse a resume whose schedule contradicts the checkpoin
 (``training/resume.py``), set what trains in the step's phase, make the static -> dynamic switch at
 the first dynamic step (motion evidence, seeds, tracks: ``EdygsModel.enter_dynamic_phase``), find
 the motion evidence once more at the refresh step, and set the datamanager's time window (the
-dynamic phase's curriculum). The model carries these out; this module decides when.
+dynamic phase's curriculum). The model carries these out; this module decides when. Only the
+switch and the refresh read device values on the host (once each); every other step decides from
+the step number and host flags alone (docs/gpu.md, "Host synchronisations").
 """
 
 from __future__ import annotations
