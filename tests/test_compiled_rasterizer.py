@@ -215,3 +215,19 @@ def test_intrinsics_gradient_uses_the_torch_projection() -> None:
         (out.render.sum() + out.alpha.sum()).backward()
         grads.append(ks.grad)
     torch.testing.assert_close(grads[1], grads[0], rtol=1e-9, atol=1e-9 * float(grads[0].abs().max()))
+
+
+def test_build_name_separates_checkouts(tmp_path, monkeypatch) -> None:
+    """Two checkouts of the same source get two cached builds (torch rebuilds a module whose source
+    path changed, so a shared name made them rebuild over each other); the same checkout keeps its name."""
+    import shutil
+
+    import edygs_ns.render.compiled as compiled
+
+    here = compiled.module_name()
+    assert compiled.module_name() == here
+    copy = tmp_path / "csrc" / compiled.SOURCE.name
+    copy.parent.mkdir()
+    shutil.copy(compiled.SOURCE, copy)
+    monkeypatch.setattr(compiled, "SOURCE", copy)
+    assert compiled.module_name() != here

@@ -47,8 +47,10 @@ def cpu_tag() -> str:
 
 
 def source_tag() -> str:
-    """Short hash of the kernel source and compiler flags."""
-    text = SOURCE.read_bytes() + " ".join(CFLAGS + LDFLAGS).encode()
+    """Short hash of the kernel source, its path and the compiler flags. The path counts because
+    torch's loader rebuilds a module whose source list changed: two checkouts of one version
+    sharing a name would rebuild over each other in turn."""
+    text = SOURCE.read_bytes() + str(SOURCE.resolve()).encode() + " ".join(CFLAGS + LDFLAGS).encode()
     return hashlib.sha1(text).hexdigest()[:8]
 
 
