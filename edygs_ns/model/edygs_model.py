@@ -515,9 +515,28 @@ class EdygsModel(SplatExportView):
         """Indices [S] of the Gaussians the gathered deformation moves: m >= deform_mask_threshold
         (every Gaussian when the gate is off). ``mask``: [N] motion-mask values. S is read on the
         host (``nonzero``): one sync per call on CUDA."""
-        if self.config.use_motion_mask and self.config.deform_mask_threshold > 0:
-            return torch.nonzero(mask.detach() >= self.config.deform_mask_threshold).squeeze(-1)
+        if self._gated():
+            return torch.nonzero(self.gate(mask)).squeeze(-1)
         return torch.arange(mask.shape[0], device=mask.device)
+
+    def _gated(self) -> bool:
+        return self.config.use_motion_mask and self.config.deform_mask_threshold > 0
+
+    def gate(self, mask: Tensor) -> Tensor:
+        """bool [N]: the Gaussians the deformation may move, m >= deform_mask_threshold (all when
+        the gate is off). ``mask``: [N] motion-mask values."""
+        if self._gated():
+            return mask.detach() >= self.config.deform_mask_threshold
+        return torch.ones_like(mask, dtype=torch.bool)
+
+    def _offsets(self, means: Tensor, quats: Tensor, time: Union[float, Tensor]) -> Tuple[Tensor, Tensor, Tensor]:
+        """Offsets (Δμ [S,3], Δq [S,4], Δs [S,3]) of the Gaussians given: the deformation MLP plus
+        the rigid bodies' motion when some body moves (a host flag, model/deformation.py)."""
+        d_xyz, d_rot, d_scale = self.deformation(means, time)
+        if self.rigid_motion.active:
+            rigid_xyz, rigid_rot = self.rigid_motion(means, quats, time)
+            d_xyz, d_rot = d_xyz + rigid_xyz, d_rot + rigid_rot
+        return d_xyz, d_rot, d_scale
 
     def deformed_gaussians(
         self, time: Union[float, Tensor], deform: bool, subset: Optional[Tensor] = None
@@ -543,10 +562,7 @@ class EdygsModel(SplatExportView):
             return self._deform_masked(out, time)
         if subset is None:
             subset = self.gate_subset(mask)
-        d_xyz, d_rot, d_scale = self.deformation(means[subset], time)
-        if self.rigid_motion.active:
-            rigid_xyz, rigid_rot = self.rigid_motion(means[subset], quats[subset], time)
-            d_xyz, d_rot = d_xyz + rigid_xyz, d_rot + rigid_rot
+        d_xyz, d_rot, d_scale = self._offsets(means[subset], quats[subset], time)
         out["means"] = means.index_add(0, subset, d_xyz)
         out["quats"] = quats.index_add(0, subset, d_rot)
         out["scales"] = scales.index_add(0, subset, d_scale).clamp_min(MIN_DEFORMED_SCALE)
@@ -557,14 +573,8 @@ class EdygsModel(SplatExportView):
         """The deformation of ``deformed_gaussians`` on every Gaussian, offsets kept where m >=
         deform_mask_threshold: the same result without the subset's size on the host."""
         means, quats, scales, mask = out["means"], out["quats"], out["scales"], out["mask"]
-        if self.config.use_motion_mask and self.config.deform_mask_threshold > 0:
-            selected = mask.detach() >= self.config.deform_mask_threshold  # [N]
-        else:
-            selected = torch.ones_like(mask, dtype=torch.bool)
-        d_xyz, d_rot, d_scale = self.deformation(means, time)
-        if self.rigid_motion.active:  # a host flag, set with the bodies (model/deformation.py)
-            rigid_xyz, rigid_rot = self.rigid_motion(means, quats, time)
-            d_xyz, d_rot = d_xyz + rigid_xyz, d_rot + rigid_rot
+        selected = self.gate(mask)  # [N]
+        d_xyz, d_rot, d_scale = self._offsets(means, quats, time)
         keep = selected[:, None]
         d_xyz, d_rot, d_scale = (torch.where(keep, d, torch.zeros_like(d)) for d in (d_xyz, d_rot, d_scale))
         out["means"], out["quats"] = means + d_xyz, quats + d_rot
