@@ -47,7 +47,21 @@ class RasterOutputs:
 
 
 class RasterBackend(Protocol):
-    """Signature of every backend (CPU reference in torch_backend, CUDA in gsplat_backend)."""
+    """Signature of every backend (torch reference in torch_backend, compiled CPU in cpu_backend,
+    CUDA in gsplat_backend).
+
+    Args:
+        means: [N, 3] world positions. quats: [N, 4] wxyz. scales: [N, 3] activated, world units;
+            or [C, N, ·] each: Gaussians per camera (projected per camera, composited together).
+        opacities: [N] activated. features: [N, D] or [C, N, D], any D.
+        viewmats: [C, 4, 4] world-to-camera (OpenCV). Ks: [C, 3, 3] pixel intrinsics.
+        width, height: image size in pixels.
+        backgrounds: [C, D] colour behind the Gaussians, or None for zeros.
+        near_plane, far_plane: depth range in world units.
+
+    Returns:
+        RasterOutputs; ``means2d.grad`` holds dL/d(pixel centre) after backward.
+    """
 
     def __call__(
         self,

@@ -43,13 +43,7 @@ def rasterize_gsplat(
     """gsplat rasterization with the contract's inputs and outputs; see ``contract.RasterBackend``.
 
     Args:
-        means: [N, 3] world positions. quats: [N, 4] wxyz. scales: [N, 3] activated, world units;
-            or [C, N, ·] each: Gaussians per camera.
-        opacities: [N] activated. features: [N, D] or [C, N, D], any D.
-        viewmats: [C, 4, 4] world-to-camera (OpenCV). Ks: [C, 3, 3] pixel intrinsics.
-        width, height: image size in pixels.
-        backgrounds: [C, D] colour behind the Gaussians, or None for zeros.
-        near_plane, far_plane: depth range in world units.
+        means ... far_plane: the contract's (shapes and units: ``contract.RasterBackend``).
         tile_size: gsplat's tile edge; only changes which far tails of Gaussians are cut.
 
     Returns:

@@ -774,13 +774,7 @@ def rasterize_torch(
     """Differentiable tile rasteriser with gsplat's rules; see ``contract.RasterBackend``.
 
     Args:
-        means: [N, 3] world positions. quats: [N, 4] wxyz. scales: [N, 3] activated, world units;
-            or [C, N, ·] each: Gaussians per camera (projected per camera, composited together).
-        opacities: [N] activated. features: [N, D] or [C, N, D], any D.
-        viewmats: [C, 4, 4] world-to-camera (OpenCV). Ks: [C, 3, 3] pixel intrinsics.
-        width, height: image size in pixels.
-        backgrounds: [C, D] colour behind the Gaussians, or None for zeros.
-        near_plane, far_plane: depth range in world units.
+        means ... far_plane: the contract's (shapes and units: ``contract.RasterBackend``).
         tile_size: tile edge in pixels; only changes which far tails of Gaussians are cut.
 
     Returns:
