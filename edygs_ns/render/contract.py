@@ -51,9 +51,11 @@ class RasterBackend(Protocol):
     CUDA in gsplat_backend).
 
     Args:
-        means: [N, 3] world positions. quats: [N, 4] wxyz. scales: [N, 3] activated, world units;
-            or [C, N, ·] each: Gaussians per camera (projected per camera, composited together).
-        opacities: [N] activated. features: [N, D] or [C, N, D], any D.
+        means: [N, 3] world positions. quats: [N, 4] wxyz, need not be normalised. scales: [N, 3]
+            activated (positive), world units; or [C, N, ·] each: Gaussians per camera (projected
+            per camera, composited together).
+        opacities: [N] activated, in (0, 1). features: [N, D] or [C, N, D] colours or other
+            channels, already evaluated, any D.
         viewmats: [C, 4, 4] world-to-camera (OpenCV). Ks: [C, 3, 3] pixel intrinsics.
         width, height: image size in pixels.
         backgrounds: [C, D] colour behind the Gaussians, or None for zeros.
@@ -65,16 +67,16 @@ class RasterBackend(Protocol):
 
     def __call__(
         self,
-        means: Tensor,  # [N, 3] or [C, N, 3] world
-        quats: Tensor,  # [N, 4] or [C, N, 4] wxyz, need not be normalised
-        scales: Tensor,  # [N, 3] or [C, N, 3] activated (positive) world units
-        opacities: Tensor,  # [N] activated, in (0, 1)
-        features: Tensor,  # [N, D] or [C, N, D] colours/extra channels, already evaluated
-        viewmats: Tensor,  # [C, 4, 4] world-to-camera, OpenCV
-        Ks: Tensor,  # [C, 3, 3] pixel intrinsics
+        means: Tensor,
+        quats: Tensor,
+        scales: Tensor,
+        opacities: Tensor,
+        features: Tensor,
+        viewmats: Tensor,
+        Ks: Tensor,
         width: int,
         height: int,
-        backgrounds: Optional[Tensor] = None,  # [C, D]
+        backgrounds: Optional[Tensor] = None,
         near_plane: float = DEFAULT_NEAR,
         far_plane: float = DEFAULT_FAR,
     ) -> RasterOutputs: ...
