@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig
-from edygs_ns.model.motion_init import evidence_regions, initialise_motion, strays_far
+from edygs_ns.model.motion_init import evidence_regions, initialise_motion, strays_far, verdict
 from edygs_ns.model.rigid_track import RigidTrackConfig
 from edygs_ns.render.torch_backend import rasterize_torch
 
@@ -84,6 +84,7 @@ def test_two_objects_are_found_apart_and_each_gets_its_own_track():
     found = _initialise(latents, evidence, statics, depth, viewmats, c2w, Ks, times)
     movers = found.movers
     assert len(movers) == 2, [o.summary() for o in found.objects]
+    assert all(o.verdict == "" for o in movers)
     movers = sorted(movers, key=lambda o: float(o.track.centre[0]))  # left ball first
     project = lambda p: p[..., :2] / p[..., 2:] * F  # noqa: E731  (a static camera at the origin)
     for obj, shift, start in zip(movers, shifts, (-0.6, 0.6)):
@@ -107,6 +108,8 @@ def test_a_still_region_is_no_mover_and_seeds_nothing():
     found = _initialise(latents, evidence, statics, depth, viewmats, c2w, Ks, times)
     assert len(found.objects) >= 1 and not found.movers
     assert len(found.seed_tensors().points) == 0
+    # the log says why: the ball is tracked in every latent but never leaves its place
+    assert "strays" in found.objects[0].verdict and "under the" in found.objects[0].summary(), found.objects[0].summary()
     assert float(found.consistency.sum()) == 0.0
 
 
@@ -127,3 +130,14 @@ def test_a_big_object_need_not_travel_its_radius():
     assert strays_far(half + 1.0, radius_px=20.0, width=128, seeding=cfg) and not strays_far(half - 1.0, radius_px=20.0, width=128, seeding=cfg)
     # a region kept on its presence alone (poor rigid fit) must stray a whole radius
     assert not strays_far(half + 1.0, radius_px=20.0, width=128, seeding=cfg, radii=cfg.steady_shift)
+
+
+def test_verdict_names_the_first_failed_test():
+    cfg = DynamicSeedingConfig()
+    ok = dict(presence=1.0, mean_iou=0.6, rigid_fit=True, steady=True, shift_px=20.0, needed_px=10.0, duplicate=False, seeding=cfg)
+    assert verdict(**ok) == ""
+    assert "of the latents" in verdict(**dict(ok, presence=0.1, shift_px=0.0))  # presence comes first
+    assert "IoU 0.10" in verdict(**dict(ok, mean_iou=0.1, rigid_fit=False, presence=0.5))
+    assert verdict(**dict(ok, mean_iou=0.1, rigid_fit=False)) == ""  # kept on presence (steady)
+    assert "20.0 px" in verdict(**dict(ok, needed_px=30.0))
+    assert "found before" in verdict(**dict(ok, duplicate=True))

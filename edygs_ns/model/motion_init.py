@@ -61,7 +61,8 @@ from edygs_ns.render.contract import RasterBackend
 @dataclass
 class MotionObject:
     """One tracked evidence region: its reference latent, seeds (tracked ones first, then coverage
-    seeds), rigid track, reach (world units), largest image shift (in its radii) and whether it moved."""
+    seeds), rigid track, reach (world units), largest image shift (in its radii), whether it moved
+    and, when it did not, why (``verdict``, for the log)."""
 
     ref: int
     seeds: Seeds
@@ -69,6 +70,7 @@ class MotionObject:
     reach: float
     shift: float
     moved: bool
+    verdict: str = ""
 
     @property
     def size(self) -> float:
@@ -79,7 +81,8 @@ class MotionObject:
         turn = float(self.track.rotvecs.norm(dim=-1).max()) * 180.0 / torch.pi
         iou = self.track.iou[torch.isfinite(self.track.iou)] if self.track.iou is not None else torch.zeros(0)
         fit = f", in {len(iou)} latents, silhouette IoU {float(iou.mean()):.2f}" if len(iou) else ", in no latent"
-        return f"latent {self.ref}: {len(self.seeds.points)} seeds, moves {self.shift:.1f} radii in the image, turns {turn:.0f}°{fit}"
+        why = f"; {self.verdict}" if self.verdict and not self.moved else ""
+        return f"latent {self.ref}: {len(self.seeds.points)} seeds, moves {self.shift:.1f} radii in the image, turns {turn:.0f}°{fit}{why}"
 
 
 @dataclass
@@ -167,12 +170,33 @@ def unexplained_shift(track: RigidTrack, ref: int, viewmats: Float[Tensor, "N 4 
     return best
 
 
-def strays_far(shift_px: float, radius_px: float, width: int, seeding: DynamicSeedingConfig, radii: Optional[float] = None) -> bool:
-    """Whether a track's unexplained shift (pixels) makes its region a mover: ``radii`` (default
-    ``still_shift``) of its radius (pixels), at least ``still_shift_fraction`` and at most
+def needed_shift(radius_px: float, width: int, seeding: DynamicSeedingConfig, radii: Optional[float] = None) -> float:
+    """The unexplained shift (pixels) that makes a region of radius ``radius_px`` (pixels) a mover:
+    ``radii`` (default ``still_shift``) of its radius, at least ``still_shift_fraction`` and at most
     ``still_shift_cap`` of the width."""
     needed = min((seeding.still_shift if radii is None else radii) * radius_px, seeding.still_shift_cap * width)
-    return shift_px >= max(needed, seeding.still_shift_fraction * width)
+    return max(needed, seeding.still_shift_fraction * width)
+
+
+def strays_far(shift_px: float, radius_px: float, width: int, seeding: DynamicSeedingConfig, radii: Optional[float] = None) -> bool:
+    """Whether a track's unexplained shift (pixels) makes its region a mover (``needed_shift``)."""
+    return shift_px >= needed_shift(radius_px, width, seeding, radii)
+
+
+def verdict(presence: float, mean_iou: float, rigid_fit: bool, steady: bool, shift_px: float, needed_px: float,
+            duplicate: bool, seeding: DynamicSeedingConfig) -> str:
+    """Why a tracked region is no mover (the first test it fails, in the order of the module
+    docstring), or "" when it is one."""
+    if presence < seeding.min_presence:
+        return f"found in {presence:.0%} of the latents, under {seeding.min_presence:.0%}"
+    if not rigid_fit and not (steady and presence >= seeding.steady_presence):
+        return (f"silhouette IoU {mean_iou:.2f} under {seeding.min_object_iou:.2f}"
+                + (f" and found in {presence:.0%} of the latents, under {seeding.steady_presence:.0%}" if steady else ""))
+    if shift_px < needed_px:
+        return f"strays {shift_px:.1f} px from a still point, under the {needed_px:.1f} px needed"
+    if duplicate:
+        return "follows a mover found before"
+    return ""
 
 
 def _duplicate(track: RigidTrack, claims: List[Tensor], share: float = 0.5) -> bool:
@@ -258,15 +282,18 @@ def initialise_motion(
         # a region followed through most of the clip is real even when one rigid silhouette fits it
         # poorly (a deforming or articulated object): its track then only carries it, see below
         consistent = presence >= seeding.min_presence and (rigid_fit or (steady and presence >= seeding.steady_presence))
-        far = strays_far(shift_px, radius_px, width, seeding, seeding.still_shift if rigid_fit else seeding.steady_shift)
-        moved = consistent and far and not _duplicate(track, earlier + [o.track.claims for o in result.movers])
+        needed_px = needed_shift(radius_px, width, seeding, seeding.still_shift if rigid_fit else seeding.steady_shift)
+        far = shift_px >= needed_px
+        duplicate = consistent and far and _duplicate(track, earlier + [o.track.claims for o in result.movers])
+        moved = consistent and far and not duplicate
+        why = verdict(presence, float(iou.mean()) if len(iou) else 0.0, rigid_fit, steady, shift_px, needed_px, duplicate, seeding)
         reach = tracking.reach * float(distances.max())
         if moved and not rigid_fit:
             # poor rigid fit: keep the track's translation as the base motion, drop its rotation (a
             # turn fitted to a changing shape is noise); the MLP residual carries the rest
             track = RigidTrack(track.centre, torch.zeros_like(track.rotvecs), track.translations, track.loss,
                                track.footprints, track.claims, track.iou)
-        result.objects.append(MotionObject(k, every, track, reach, shift, moved))
+        result.objects.append(MotionObject(k, every, track, reach, shift, moved, why))
         covered |= track.claims
         covered[k] |= region
     movers = result.movers
