@@ -278,15 +278,14 @@ def initialise_motion(
         shift = shift_px / max(radius_px, 1e-9)
         iou = track.iou[torch.isfinite(track.iou)]
         presence = len(iou) / n
-        rigid_fit = len(iou) > 0 and float(iou.mean()) >= seeding.min_object_iou
+        mean_iou = float(iou.mean()) if len(iou) else 0.0
+        rigid_fit = len(iou) > 0 and mean_iou >= seeding.min_object_iou
         # a region followed through most of the clip is real even when one rigid silhouette fits it
         # poorly (a deforming or articulated object): its track then only carries it, see below
-        consistent = presence >= seeding.min_presence and (rigid_fit or (steady and presence >= seeding.steady_presence))
         needed_px = needed_shift(radius_px, width, seeding, seeding.still_shift if rigid_fit else seeding.steady_shift)
-        far = shift_px >= needed_px
-        duplicate = consistent and far and _duplicate(track, earlier + [o.track.claims for o in result.movers])
-        moved = consistent and far and not duplicate
-        why = verdict(presence, float(iou.mean()) if len(iou) else 0.0, rigid_fit, steady, shift_px, needed_px, duplicate, seeding)
+        duplicate = _duplicate(track, earlier + [o.track.claims for o in result.movers])
+        why = verdict(presence, mean_iou, rigid_fit, steady, shift_px, needed_px, duplicate, seeding)
+        moved = why == ""
         reach = tracking.reach * float(distances.max())
         if moved and not rigid_fit:
             # poor rigid fit: keep the track's translation as the base motion, drop its rotation (a
