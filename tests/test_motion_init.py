@@ -138,6 +138,7 @@ def test_verdict_names_the_first_failed_test():
     assert verdict(**ok) == ""
     assert "of the latents" in verdict(**dict(ok, presence=0.1, shift_px=0.0))  # presence comes first
     assert "IoU 0.10" in verdict(**dict(ok, mean_iou=0.1, rigid_fit=False, presence=0.5))
-    assert verdict(**dict(ok, mean_iou=0.1, rigid_fit=False)) == ""  # kept on presence (steady)
+    assert verdict(**dict(ok, mean_iou=0.2, rigid_fit=False)) == ""  # kept on presence (steady)
+    assert "under 0.15 for a region found in most latents" in verdict(**dict(ok, mean_iou=0.1, rigid_fit=False))  # drifted off
     assert "20.0 px" in verdict(**dict(ok, needed_px=30.0))
     assert "found before" in verdict(**dict(ok, duplicate=True))

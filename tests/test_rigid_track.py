@@ -9,7 +9,7 @@ import torch
 
 from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig
 from edygs_ns.model.rigid_track import (
-    RigidTrack, RigidTrackConfig, coverage_seeds, rigid_apply, rotation_matrices, track_rigid, visiting_order,
+    RigidTrack, RigidTrackConfig, coverage_seeds, rigid_apply, rotation_matrices, track_rigid, twist_about, visiting_order,
 )
 from edygs_ns.render.torch_backend import rasterize_torch
 
@@ -219,3 +219,46 @@ def test_rigid_bodies_each_move_what_is_nearest_to_them():
     loaded.prepare_load(single, "")
     loaded.load_state_dict(single)
     assert torch.equal(loaded.rotvecs[0], torch.ones(2, 3)) and float(loaded.reach[0]) == 1.0 and float(loaded.reach[1]) == 0.0
+
+
+def test_twist_is_the_turn_about_the_axis():
+    axis = torch.tensor([0.0, 0.0, 2.0])  # any length
+    assert torch.allclose(twist_about(torch.tensor([0.0, 0.0, 1.2]), axis), torch.tensor([0.0, 0.0, 1.2]))
+    assert torch.allclose(twist_about(torch.tensor([0.7, -0.2, 0.0]), axis), torch.zeros(3), atol=1e-7)
+    assert torch.allclose(twist_about(torch.zeros(3), axis), torch.zeros(3))
+    # a turn about a tilted axis: the twist is its quaternion's part along the line of sight
+    turn = torch.tensor([0.5, 0.0, 0.5])
+    expected = 2 * math.atan2(math.sin(0.5 * 2**0.5 / 2) / 2**0.5, math.cos(0.5 * 2**0.5 / 2))
+    assert torch.allclose(twist_about(turn, axis), torch.tensor([0.0, 0.0, expected]))
+
+
+def test_outline_turns_with_an_elongated_object_turning_in_view():
+    # a textured bar turns about the line of sight: its colours give the turn either way, but only
+    # an outline turned with it overlaps its evidence (the IoU the mover test reads)
+    n, ref, spin = 7, 3, 0.25
+    t = torch.linspace(0, 1, 2000)[:, None]
+    around = torch.rand(2000, 1, generator=torch.Generator().manual_seed(0)) * 2 * math.pi
+    bar = CENTRE + torch.cat([(2 * t - 1) * 0.9, 0.12 * around.cos(), 0.12 * around.sin()], dim=-1)
+    colors = torch.rand(len(bar), 3, generator=torch.Generator().manual_seed(1))
+    radii = torch.full((len(bar),), 0.03)
+    rotations = rotation_matrices((torch.arange(n, dtype=torch.float32) - ref)[:, None] * spin * torch.tensor([0.0, 0.0, 1.0]))
+    K = torch.tensor([[F, 0.0, W / 2], [0.0, F, H / 2], [0.0, 0.0, 1.0]]).repeat(n, 1, 1)
+    viewmats = torch.eye(4).repeat(n, 1, 1)
+    quats = torch.zeros(len(bar), 4)
+    quats[:, 0] = 1.0
+    background = torch.full((H, W, 3), 0.4)
+    renders = [rasterize_torch(moved, quats, radii[:, None].repeat(1, 3), torch.full((len(bar),), 0.95), colors,
+                               viewmats[:1], K[:1], W, H) for moved in rigid_apply(bar, CENTRE, rotations, torch.zeros(n, 3))]
+    latents = torch.stack([out.render[0] + (1 - out.alpha[0]) * background for out in renders])
+    evidence = torch.stack([(out.alpha[0, ..., 0] > 0.5).float() for out in renders])
+    ends = [0, n - 1]
+    fits = {}
+    for twist in (False, True):
+        track = track_rigid(bar, colors, radii, CENTRE, torch.linspace(0, 1, n), evidence, lambda i: latents[i],
+                            background.expand(n, H, W, 3), viewmats, K, ref, rasterize_torch,
+                            RigidTrackConfig(steps=40, silhouette_twist=twist))
+        turn = float(track.rotvecs[ends].norm(dim=-1).mean())
+        assert abs(turn - ref * spin) < 0.1 * ref * spin, (twist, turn)  # the colours find the turn
+        fits[twist] = float(track.iou[ends].mean())
+    assert fits[False] < 0.5, fits  # the unturned outline covers little of the turned bar
+    assert fits[True] > 0.8, fits

@@ -115,6 +115,8 @@ class DynamicSeedingConfig:
     """... unless its evidence is found in this share of the latents (e.g. a deforming object)"""
     steady_shift: Suppress[float] = 1.0
     """such a region must stray this many of its radii instead of ``still_shift``"""
+    steady_iou: Suppress[float] = 0.15
+    """... and its silhouette still overlap its evidence by this mean IoU (below it drifted off)"""
 
 
 def dilate(masks: Bool[Tensor, "... H W"], pixels: int) -> Bool[Tensor, "... H W"]:

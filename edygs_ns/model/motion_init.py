@@ -23,7 +23,8 @@ deformation's base motion (``deformation.RigidMotion``), and the mask-consistenc
    some latent. A region followed
    through ``steady_presence`` of the latents is kept even when the rigid silhouette fits it
    poorly (a deforming or articulated object), if it strays ``steady_shift`` (not ``still_shift``)
-   of its radius; its body then moves without turning and the
+   of its radius and its silhouette still overlaps it by ``steady_iou`` (under that the track
+   drifted off its evidence, and its shift is drift); its body then moves without turning and the
    deformation MLP's residual carries the rest (the fallback where a rigid fit is poor). Otherwise it is a flaw of the static model. A track that mostly runs
    inside a mover's claimed zone is that mover again (started where it crossed another object). A region that is no mover gets
    no seeds and no body: nothing moving, nothing added. An object that only turns in place is not
@@ -189,9 +190,13 @@ def verdict(presence: float, mean_iou: float, rigid_fit: bool, steady: bool, shi
     docstring), or "" when it is one."""
     if presence < seeding.min_presence:
         return f"found in {presence:.0%} of the latents, under {seeding.min_presence:.0%}"
-    if not rigid_fit and not (steady and presence >= seeding.steady_presence):
-        return (f"silhouette IoU {mean_iou:.2f} under {seeding.min_object_iou:.2f}"
-                + (f" and found in {presence:.0%} of the latents, under {seeding.steady_presence:.0%}" if steady else ""))
+    if not rigid_fit and not (steady and presence >= seeding.steady_presence and mean_iou >= seeding.steady_iou):
+        why = f"silhouette IoU {mean_iou:.2f} under {seeding.min_object_iou:.2f}"
+        if steady and presence < seeding.steady_presence:
+            why += f" and found in {presence:.0%} of the latents, under {seeding.steady_presence:.0%}"
+        elif steady:
+            why += f", and under {seeding.steady_iou:.2f} for a region found in most latents"
+        return why
     if shift_px < needed_px:
         return f"strays {shift_px:.1f} px from a still point, under the {needed_px:.1f} px needed"
     if duplicate:

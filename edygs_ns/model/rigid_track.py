@@ -14,7 +14,10 @@ Here the seeds' motion is first estimated as one rigid transform per training la
 about the seeds' centre c. Each (ω_i, τ_i) is fitted by a few Adam steps on the L1 difference
 between the latent and the seeds rendered over the static model's render of that latent (the
 seeds alone are rasterised, so a step costs a few hundred Gaussians), plus a silhouette term
-between the seeds' alpha and the object's motion evidence. Latents are visited outwards in time
+between the seeds' alpha and the object's motion evidence (the seeds translated only: a ball
+spinning its seen side away keeps its outline; ``silhouette_twist`` also turns them by the fit's
+twist about the line of sight, as a bar or an arm turning in the view turns its outline, while the
+colours alone turn the fit). Latents are visited outwards in time
 from the object's reference latent, each one starting from its neighbour's transform; in each
 latent only the evidence near the object's silhouette at that start counts (another mover's
 evidence neither pulls the fit nor enters its loss). The track becomes the object's rigid body
@@ -63,6 +66,8 @@ class RigidTrackConfig:
     """evidence within this many object radii of its silhouette is its own"""
     silhouette_weight: float = 0.2
     """weight of the silhouette term beside the colour L1 of the fit"""
+    silhouette_twist: bool = False
+    """the silhouette's seeds turn with the fit about the line of sight (off: translated only)"""
     extrapolate: bool = False
     """start each latent's fit at the last two fits' constant velocity (not kept)"""
 
@@ -106,6 +111,15 @@ def rotation_matrices(rotvecs: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3 3"]:
     """Rotation matrices of axis-angle vectors (nerfstudio's SO(3) exponential map)."""
     tangent = torch.cat([torch.zeros_like(rotvecs), rotvecs], dim=-1)
     return exp_map_SO3xR3(tangent)[:, :3, :3]
+
+
+def twist_about(rotvec: Float[Tensor, "3"], axis: Float[Tensor, "3"]) -> Float[Tensor, "3"]:
+    """The twist of rotation ``rotvec`` (axis-angle, radians) about ``axis`` (any length): the part
+    of the turn about that axis in the swing-twist decomposition, as a rotation vector."""
+    axis = axis / axis.norm().clamp_min(1e-12)
+    angle = (rotvec.square().sum() + 1e-24).sqrt()
+    along = torch.sin(angle / 2) / angle * (rotvec @ axis)  # the quaternion's vector part along the axis
+    return axis * 2.0 * torch.atan2(along, torch.cos(angle / 2))
 
 
 def rigid_apply(points: Tensor, centre: Tensor, rotations: Tensor, translations: Tensor) -> Tensor:
@@ -157,6 +171,7 @@ def track_rigid(
     """
     n = backgrounds.shape[0]
     device = points.device
+    camera_centres = -torch.einsum("nji,nj->ni", viewmats[:, :3, :3], viewmats[:, :3, 3])  # [N, 3] world
     size = (points - centre).norm(dim=-1).square().mean().sqrt().clamp_min(1e-6)
     rotvecs = torch.zeros(n, 3, device=device)
     units = torch.zeros(n, 3, device=device)  # translation / size
@@ -182,12 +197,17 @@ def track_rigid(
         K[:, 1, 2] -= y0
         return backend(means, quats, scales, opacities, features, viewmats[i : i + 1], K, x1 - x0, y1 - y0)
 
-    def silhouette(i: int, rotvec: Tensor, unit: Tensor, turn: bool = True, win: Optional[Window] = None) -> Tensor:
-        """[H, W] (or window) alpha of the seeds at latent i under (rotvec, unit); unturned if not ``turn``."""
-        if turn:
-            moved = rigid_apply(points, centre, rotation_matrices(rotvec[None]), (unit * size)[None])[0]
-        else:
+    def silhouette(i: int, rotvec: Tensor, unit: Tensor, outline: bool = False, win: Optional[Window] = None) -> Tensor:
+        """[H, W] (or window) alpha of the seeds at latent i under (rotvec, unit). ``outline``: the
+        seeds turned only about latent i's line of sight through the centre (off
+        ``silhouette_twist``: not turned). The seeds are the side the reference latent saw: a turn
+        out of the view carries them off the object's outline, a turn within it turns the outline."""
+        if outline and not config.silhouette_twist:
             moved = points + (unit * size)[None]
+        else:
+            if outline:
+                rotvec = twist_about(rotvec, centre - camera_centres[i])
+            moved = rigid_apply(points, centre, rotation_matrices(rotvec[None]), (unit * size)[None])[0]
         # only alpha is read, so one feature channel is composited
         return rasterize(i, moved, colors[:, :1], win).alpha[0, ..., 0]
 
@@ -219,9 +239,8 @@ def track_rigid(
         composite = out.render[0] + (1.0 - out.alpha[0]) * backgrounds[i, y0:y1, x0:x1]
         loss = (composite - target[y0:y1, x0:x1]).abs()[region].mean()
         if config.silhouette_weight > 0:
-            # the seeds are only the part the reference latent saw: turned, their outline would no
-            # longer be the object's, so the silhouette places the unturned seeds (translation only)
-            alpha = silhouette(i, rotvec, unit, turn=False, win=win)
+            # the outline places the seeds; the colours alone turn them (no gradient into the twist)
+            alpha = silhouette(i, rotvec.detach(), unit, outline=True, win=win)
             loss = loss + config.silhouette_weight * (alpha - outline)[region].abs().mean()
         return loss
 
@@ -259,7 +278,7 @@ def track_rigid(
     with torch.no_grad():
         for i in range(n):
             losses[i] = render_loss(i, rotvecs[i], units[i], latent(i)) if bool(regions[i].any()) else 0.0
-            shape = silhouette(i, rotvecs[i], units[i], turn=False) > 0.5
+            shape = silhouette(i, rotvecs[i], units[i], outline=True) > 0.5
             footprints[i] = dilate(shape, dilation)
             claims[i] = dilate(shape, follow)
             own = outlines[i] > 0.5
