@@ -135,6 +135,11 @@ def viewmats_from_c2w(c2w: Tensor) -> Tensor:
     return torch.cat([top, _bottom_row(c2w)], dim=1)
 
 
+def camera_centres(viewmats: Tensor) -> Tensor:
+    """[C, 3] world positions of the cameras of [C, 4, 4] world-to-camera matrices (-Rᵀ t)."""
+    return -torch.einsum("nji,nj->ni", viewmats[:, :3, :3], viewmats[:, :3, 3])
+
+
 # ----------------------------------------------------------------------------------------------
 # Pose interpolation
 # ----------------------------------------------------------------------------------------------

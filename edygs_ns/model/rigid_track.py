@@ -36,6 +36,7 @@ from nerfstudio.cameras.lie_groups import exp_map_SO3xR3
 from torch import Tensor
 from tyro.conf import Suppress
 
+from edygs_ns.geometry import camera_centres
 from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig, Seeds, dilate, seed_gaussians
 from edygs_ns.render.contract import RasterBackend
 
@@ -171,7 +172,7 @@ def track_rigid(
     """
     n = backgrounds.shape[0]
     device = points.device
-    camera_centres = -torch.einsum("nji,nj->ni", viewmats[:, :3, :3], viewmats[:, :3, 3])  # [N, 3] world
+    eyes = camera_centres(viewmats)  # [N, 3] world: the lines of sight of the outline's twist
     size = (points - centre).norm(dim=-1).square().mean().sqrt().clamp_min(1e-6)
     rotvecs = torch.zeros(n, 3, device=device)
     units = torch.zeros(n, 3, device=device)  # translation / size
@@ -197,17 +198,16 @@ def track_rigid(
         K[:, 1, 2] -= y0
         return backend(means, quats, scales, opacities, features, viewmats[i : i + 1], K, x1 - x0, y1 - y0)
 
-    def silhouette(i: int, rotvec: Tensor, unit: Tensor, outline: bool = False, win: Optional[Window] = None) -> Tensor:
-        """[H, W] (or window) alpha of the seeds at latent i under (rotvec, unit). ``outline``: the
-        seeds turned only about latent i's line of sight through the centre (off
+    def silhouette(i: int, rotvec: Tensor, unit: Tensor, as_outline: bool = False, win: Optional[Window] = None) -> Tensor:
+        """[H, W] (or window) alpha of the seeds at latent i under (rotvec, unit). ``as_outline``:
+        the seeds turned only about latent i's line of sight through the centre (off
         ``silhouette_twist``: not turned). The seeds are the side the reference latent saw: a turn
         out of the view carries them off the object's outline, a turn within it turns the outline."""
-        if outline and not config.silhouette_twist:
+        if as_outline and not config.silhouette_twist:
             moved = points + (unit * size)[None]
         else:
-            if outline:
-                rotvec = twist_about(rotvec, centre - camera_centres[i])
-            moved = rigid_apply(points, centre, rotation_matrices(rotvec[None]), (unit * size)[None])[0]
+            turn = twist_about(rotvec, centre - eyes[i]) if as_outline else rotvec
+            moved = rigid_apply(points, centre, rotation_matrices(turn[None]), (unit * size)[None])[0]
         # only alpha is read, so one feature channel is composited
         return rasterize(i, moved, colors[:, :1], win).alpha[0, ..., 0]
 
@@ -240,7 +240,7 @@ def track_rigid(
         loss = (composite - target[y0:y1, x0:x1]).abs()[region].mean()
         if config.silhouette_weight > 0:
             # the outline places the seeds; the colours alone turn them (no gradient into the twist)
-            alpha = silhouette(i, rotvec.detach(), unit, outline=True, win=win)
+            alpha = silhouette(i, rotvec.detach(), unit, as_outline=True, win=win)
             loss = loss + config.silhouette_weight * (alpha - outline)[region].abs().mean()
         return loss
 
@@ -278,7 +278,7 @@ def track_rigid(
     with torch.no_grad():
         for i in range(n):
             losses[i] = render_loss(i, rotvecs[i], units[i], latent(i)) if bool(regions[i].any()) else 0.0
-            shape = silhouette(i, rotvecs[i], units[i], outline=True) > 0.5
+            shape = silhouette(i, rotvecs[i], units[i], as_outline=True) > 0.5
             footprints[i] = dilate(shape, dilation)
             claims[i] = dilate(shape, follow)
             own = outlines[i] > 0.5
