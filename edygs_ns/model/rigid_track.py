@@ -14,10 +14,10 @@ Here the seeds' motion is first estimated as one rigid transform per training la
 about the seeds' centre c. Each (ω_i, τ_i) is fitted by a few Adam steps on the L1 difference
 between the latent and the seeds rendered over the static model's render of that latent (the
 seeds alone are rasterised, so a step costs a few hundred Gaussians), plus a silhouette term
-between the seeds' alpha and the object's motion evidence (the seeds translated only: a ball
-spinning its seen side away keeps its outline; ``silhouette_twist`` also turns them by the fit's
-twist about the line of sight, as a bar or an arm turning in the view turns its outline, while the
-colours alone turn the fit). Latents are visited outwards in time
+between the seeds' alpha and the object's motion evidence. The silhouette's seeds are translated
+and turned only by the fit's twist about the line of sight: a bar or an arm turning in the view
+turns its outline, a ball spinning its seen side away keeps it; the colours alone turn the fit
+(``silhouette_twist`` off: translated only). Latents are visited outwards in time
 from the object's reference latent, each one starting from its neighbour's transform; in each
 latent only the evidence near the object's silhouette at that start counts (another mover's
 evidence neither pulls the fit nor enters its loss). The track becomes the object's rigid body
@@ -67,7 +67,7 @@ class RigidTrackConfig:
     """evidence within this many object radii of its silhouette is its own"""
     silhouette_weight: float = 0.2
     """weight of the silhouette term beside the colour L1 of the fit"""
-    silhouette_twist: bool = False
+    silhouette_twist: bool = True
     """the silhouette's seeds turn with the fit about the line of sight (off: translated only)"""
     extrapolate: bool = False
     """start each latent's fit at the last two fits' constant velocity (not kept)"""
