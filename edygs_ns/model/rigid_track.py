@@ -84,8 +84,8 @@ class RigidTrack:
     colour error near the motion evidence, plus the weighted silhouette error); ``footprints``
     [N, H, W] bool the pixels near the tracked seeds in every latent, ``claims`` the wider zone
     within the follow margin (evidence there is this object's, not another's); ``iou`` [N] the intersection
-    over union of the tracked seeds' silhouette with the object's evidence (NaN where the latent has
-    none)."""
+    over union of the tracked seeds' silhouette, translated only, with the object's evidence (NaN
+    where the latent has none): the mover test reads it, and a turn fitted to noise must not raise it."""
 
     centre: Tensor
     rotvecs: Tensor
@@ -198,12 +198,13 @@ def track_rigid(
         K[:, 1, 2] -= y0
         return backend(means, quats, scales, opacities, features, viewmats[i : i + 1], K, x1 - x0, y1 - y0)
 
-    def silhouette(i: int, rotvec: Tensor, unit: Tensor, as_outline: bool = False, win: Optional[Window] = None) -> Tensor:
+    def silhouette(i: int, rotvec: Tensor, unit: Tensor, as_outline: bool = False, win: Optional[Window] = None,
+                   twist: Optional[bool] = None) -> Tensor:
         """[H, W] (or window) alpha of the seeds at latent i under (rotvec, unit). ``as_outline``:
-        the seeds turned only about latent i's line of sight through the centre (off
-        ``silhouette_twist``: not turned). The seeds are the side the reference latent saw: a turn
-        out of the view carries them off the object's outline, a turn within it turns the outline."""
-        if as_outline and not config.silhouette_twist:
+        the seeds turned only about latent i's line of sight through the centre (``twist``, default
+        ``silhouette_twist``; off: not turned). The seeds are the side the reference latent saw: a
+        turn out of the view carries them off the object's outline, a turn within it turns the outline."""
+        if as_outline and not (config.silhouette_twist if twist is None else twist):
             moved = points + (unit * size)[None]
         else:
             turn = twist_about(rotvec, centre - eyes[i]) if as_outline else rotvec
@@ -283,7 +284,8 @@ def track_rigid(
             claims[i] = dilate(shape, follow)
             own = outlines[i] > 0.5
             if bool(own.any()):
-                iou[i] = (shape & own).sum() / (shape | own).sum()
+                still = silhouette(i, rotvecs[i], units[i], as_outline=True, twist=False) > 0.5
+                iou[i] = (still & own).sum() / (still | own).sum()
     return RigidTrack(centre=centre, rotvecs=rotvecs, translations=units * size, loss=losses, footprints=footprints, claims=claims, iou=iou)
 
 
