@@ -198,19 +198,22 @@ def track_rigid(
         K[:, 1, 2] -= y0
         return backend(means, quats, scales, opacities, features, viewmats[i : i + 1], K, x1 - x0, y1 - y0)
 
-    def silhouette(i: int, rotvec: Tensor, unit: Tensor, as_outline: bool = False, win: Optional[Window] = None,
-                   twist: Optional[bool] = None) -> Tensor:
-        """[H, W] (or window) alpha of the seeds at latent i under (rotvec, unit). ``as_outline``:
-        the seeds turned only about latent i's line of sight through the centre (``twist``, default
-        ``silhouette_twist``; off: not turned). The seeds are the side the reference latent saw: a
-        turn out of the view carries them off the object's outline, a turn within it turns the outline."""
-        if as_outline and not (config.silhouette_twist if twist is None else twist):
+    def silhouette(i: int, turn: Optional[Tensor], unit: Tensor, win: Optional[Window] = None) -> Tensor:
+        """[H, W] (or window) alpha of the seeds at latent i turned by ``turn`` (a rotation vector;
+        None: translated only) and moved by ``unit``."""
+        if turn is None:
             moved = points + (unit * size)[None]
         else:
-            turn = twist_about(rotvec, centre - eyes[i]) if as_outline else rotvec
             moved = rigid_apply(points, centre, rotation_matrices(turn[None]), (unit * size)[None])[0]
         # only alpha is read, so one feature channel is composited
         return rasterize(i, moved, colors[:, :1], win).alpha[0, ..., 0]
+
+    def outline_turn(i: int, rotvec: Tensor) -> Optional[Tensor]:
+        """The turn of the object's outline at latent i: the fit's twist about the line of sight
+        through the centre (None when ``silhouette_twist`` is off). The seeds are the side the
+        reference latent saw: a turn out of the view carries them off the object's outline, a turn
+        within it turns the outline."""
+        return twist_about(rotvec, centre - eyes[i]) if config.silhouette_twist else None
 
     def window(i: int) -> Window:
         """The box around latent i's loss region (the only pixels the fit reads), 2 px of margin."""
@@ -241,7 +244,7 @@ def track_rigid(
         loss = (composite - target[y0:y1, x0:x1]).abs()[region].mean()
         if config.silhouette_weight > 0:
             # the outline places the seeds; the colours alone turn them (no gradient into the twist)
-            alpha = silhouette(i, rotvec.detach(), unit, as_outline=True, win=win)
+            alpha = silhouette(i, outline_turn(i, rotvec.detach()), unit, win=win)
             loss = loss + config.silhouette_weight * (alpha - outline)[region].abs().mean()
         return loss
 
@@ -279,12 +282,13 @@ def track_rigid(
     with torch.no_grad():
         for i in range(n):
             losses[i] = render_loss(i, rotvecs[i], units[i], latent(i)) if bool(regions[i].any()) else 0.0
-            shape = silhouette(i, rotvecs[i], units[i], as_outline=True) > 0.5
+            turn = outline_turn(i, rotvecs[i])
+            shape = silhouette(i, turn, units[i]) > 0.5
             footprints[i] = dilate(shape, dilation)
             claims[i] = dilate(shape, follow)
             own = outlines[i] > 0.5
             if bool(own.any()):
-                still = silhouette(i, rotvecs[i], units[i], as_outline=True, twist=False) > 0.5
+                still = shape if turn is None else silhouette(i, None, units[i]) > 0.5
                 iou[i] = (still & own).sum() / (still | own).sum()
     return RigidTrack(centre=centre, rotvecs=rotvecs, translations=units * size, loss=losses, footprints=footprints, claims=claims, iou=iou)
 
