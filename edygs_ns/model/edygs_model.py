@@ -144,7 +144,8 @@ class EdygsModelConfig(ModelConfig):
     detach_mask_in_motion_loss: Suppress[bool] = True
     """no gradient from the motion loss into m (calling Gaussians dynamic cannot lower it)"""
     ablation: Optional[Literal["events-only", "edi-only", "edi-events", "edi-events-pose", "paper", "full", "blurry"]] = None
-    """the switches above as a row of the paper's Table 2; None: as given"""
+    """the switches above as a row of the paper's Table 2 (it sets them, over values given on the
+    command line); None: as given"""
 
     def __post_init__(self) -> None:
         from edygs_ns.model.ablations import apply_ablation
