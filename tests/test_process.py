@@ -439,3 +439,26 @@ def test_with_calibration_sets_fixed_camera_params() -> None:
     assert with_calibration(by_hand, square)[0] is by_hand
     assert with_calibration(ColmapConfig(use_calibration=False), square)[0].camera_params is None
     assert with_calibration(ColmapConfig(), None)[0].refine_focal_length
+
+
+def test_colmap_upsampling_factor_and_camera_params() -> None:
+    from edygs_ns.preprocess.colmap import MAX_UPSAMPLE, scale_camera_params, upsample_factor
+
+    assert upsample_factor(128, 96, 512) == 4 and upsample_factor(346, 260, 512) == 2
+    assert upsample_factor(640, 480, 512) == 1 and upsample_factor(128, 96, 0) == 1
+    assert upsample_factor(32, 24, 512) == MAX_UPSAMPLE
+    assert scale_camera_params("SIMPLE_PINHOLE", "100,64,48", 4) == "400,256,192"
+    # OPENCV: focal lengths and principal point scale, distortion (normalised coordinates) does not
+    assert scale_camera_params("OPENCV", "100,90,64,48,-0.2,0.05,0.001,0", 2) == "200,180,128,96,-0.2,0.05,0.001,0"
+
+
+def test_upsampled_colmap_poses_are_closer_to_the_truth(raw: Path, tmp_path: Path) -> None:
+    """COLMAP on the latents upsampled (the default) against the latents as they are: same capture."""
+    errors = {}
+    for name, resolution in (("upsampled", COLMAP.feature_resolution), ("as_is", 0)):
+        assert resolution == 0 or (COLMAP.feature_resolution > TINY["width"])
+        process(replace(_config(tmp_path / name, raw), colmap=replace(COLMAP, feature_resolution=resolution)))
+        meta = json.loads((tmp_path / name / "transforms.json").read_text())
+        assert (meta["w"], meta["h"]) == (TINY["width"], TINY["height"])
+        errors[name] = ate_rmse(np.array([f["transform_matrix"] for f in meta["frames"]]), _gt_poses(raw, meta["frames"]))
+    assert errors["upsampled"] < 0.8 * errors["as_is"], errors
