@@ -337,8 +337,10 @@ def run_colmap(image_dir: Path, names: Sequence[str], work_dir: Path, config: Co
         shutil.rmtree(work_dir)
     work_dir.mkdir(parents=True)
     database = work_dir / "database.db"
-    with Image.open(image_dir / names[0]) as first:
-        factor = upsample_factor(first.width, first.height, config.feature_resolution)
+    factor = 1
+    if names:
+        with Image.open(image_dir / names[0]) as first:
+            factor = upsample_factor(first.width, first.height, config.feature_resolution)
     if factor > 1:
         image_dir = _upsampled_images(image_dir, names, work_dir / UPSAMPLED_DIR, factor)
         if config.camera_params is not None:
