@@ -2,7 +2,7 @@
 
 Small latents (event cameras' frames, 128-346 px wide) are upsampled by a whole factor first
 (``feature_resolution``): SIFT then places its features to a fraction of a latent pixel, and the
-poses come out two to three times closer to the truth on the built-in scenes (docs/experiments.md).
+poses come out 2.5-5 times closer to the truth on the suite's scenes (docs/experiments.md).
 
 Runs on the CPU. One camera is shared by every latent (``CameraMode.SINGLE``): PINHOLE by
 default, or OPENCV (k1, k2, p1, p2) when the lens distorts; the writer then undistorts the
@@ -25,6 +25,7 @@ from typing import Any, Dict, List, Literal, Optional, Sequence, Tuple
 import numpy as np
 
 from edygs_ns.geometry import Intrinsics, colmap_w2c_to_c2w_opengl
+from edygs_ns.io.images import image_size
 from edygs_ns.preprocess.steps import progress_bar
 
 #: glog level of COLMAP's own log lines shown (0 info, 1 warning, 2 error).
@@ -330,17 +331,13 @@ def run_colmap(image_dir: Path, names: Sequence[str], work_dir: Path, config: Co
         The result; images COLMAP did not register have NaN poses and registered=False.
     """
     import pycolmap
-    from PIL import Image
 
     pycolmap.logging.minloglevel = COLMAP_LOG_LEVEL
     if work_dir.exists():
         shutil.rmtree(work_dir)
     work_dir.mkdir(parents=True)
     database = work_dir / "database.db"
-    factor = 1
-    if names:
-        with Image.open(image_dir / names[0]) as first:
-            factor = upsample_factor(first.width, first.height, config.feature_resolution)
+    factor = upsample_factor(*image_size(image_dir / names[0])[::-1], config.feature_resolution) if names else 1
     if factor > 1:
         image_dir = _upsampled_images(image_dir, names, work_dir / UPSAMPLED_DIR, factor)
         if config.camera_params is not None:
