@@ -69,6 +69,12 @@ class DynamicSeedingConfig:
     """at most this many seeds (evenly subsampled)"""
     depth_scale: Suppress[float] = 0.9
     """seeds sit at this fraction of the static render's depth"""
+    path_depth: bool = True
+    """then move each tracked object to the depth where its path is a quadratic in time (model/path_depth.py)"""
+    path_depth_range: Suppress[Tuple[float, float]] = (0.25, 1.0)
+    """... by a factor on its distance clamped to this range (above 1: behind what it hides)"""
+    path_depth_max_residual: Suppress[float] = 0.2
+    """... if the fitted path passes within this many object sizes (RMS) of its lines of sight"""
     seed_shape: Suppress[Literal["cap", "flat"]] = "cap"
     """cap: a round cap towards the camera at the region's median depth; flat: per-pixel depth"""
     coverage_times: Suppress[Tuple[float, ...]] = (0.0, 1.0)

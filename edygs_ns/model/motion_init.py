@@ -13,8 +13,10 @@ deformation's base motion (``deformation.RigidMotion``), and the mask-consistenc
    the image, or than ``min_relative_size`` of the first (largest) region, are noise: every
    tracked region costs a full track at the switch.
 3. Each object gets its own seeds (a cap at its own median static depth), its own rigid track
-   (``rigid_track.track_rigid``, which follows only the evidence near the object), its coverage
-   seeds and its own reach. A region is a mover only if its track holds: its evidence is found in
+   (``rigid_track.track_rigid``, which follows only the evidence near the object), then seeds and
+   track together move to the depth at which the path of one of its points is a quadratic in
+   time (``path_depth``: the training views cannot tell the depth of an independent mover), its
+   coverage seeds and its own reach. A region is a mover only if its track holds: its evidence is found in
    at least ``min_presence`` of the latents and the tracked silhouette overlaps it (mean IoU at
    least ``min_object_iou``; scattered residual noise does neither), and no static point explains
    the track: wherever on the reference latent's ray through the region a still point is put (the
@@ -55,6 +57,7 @@ from scipy import ndimage
 from torch import Tensor
 
 from edygs_ns.model.dynamic_seeding import EIGHT_CONNECTED, DynamicSeedingConfig, Seeds, seed_gaussians
+from edygs_ns.model.path_depth import PathFit, path_depth, rescale
 from edygs_ns.model.rigid_track import RigidTrack, RigidTrackConfig, coverage_seeds, track_rigid
 from edygs_ns.render.contract import RasterBackend
 
@@ -72,6 +75,7 @@ class MotionObject:
     shift: float
     moved: bool
     verdict: str = ""
+    path: Optional[PathFit] = None
 
     @property
     def size(self) -> float:
@@ -83,7 +87,9 @@ class MotionObject:
         iou = self.track.iou[torch.isfinite(self.track.iou)] if self.track.iou is not None else torch.zeros(0)
         fit = f", in {len(iou)} latents, silhouette IoU {float(iou.mean()):.2f}" if len(iou) else ", in no latent"
         why = f"; {self.verdict}" if self.verdict and not self.moved else ""
-        return f"latent {self.ref}: {len(self.seeds.points)} seeds, moves {self.shift:.1f} radii in the image, turns {turn:.0f}°{fit}{why}"
+        depth = "" if self.path is None else (f", path depth x{self.path.factor:.2f} (off its lines of sight by "
+                                               f"{self.path.residual:.2f} sizes{'' if self.path.applied else '; not applied'})")
+        return f"latent {self.ref}: {len(self.seeds.points)} seeds, moves {self.shift:.1f} radii in the image, turns {turn:.0f}°{fit}{depth}{why}"
 
 
 @dataclass
@@ -273,6 +279,16 @@ def initialise_motion(
             continue
         track = track_rigid(seeds.points, seeds.colors, seeds.radii, seeds.centre, times, evidence, latent, statics,
                             viewmats, Ks, k, backend, tracking)
+        iou = track.iou[torch.isfinite(track.iou)]
+        rigid_fit = len(iou) > 0 and float(iou.mean()) >= seeding.min_object_iou
+        path = None
+        if seeding.path_depth:
+            size = float((seeds.points - seeds.centre).norm(dim=-1).square().mean().sqrt())
+            path = path_depth(track, size, cams_to_world_cv[:, :3, 3], times, turns=rigid_fit)
+        if path is not None and path.residual <= seeding.path_depth_max_residual:
+            factor = min(max(path.factor, seeding.path_depth_range[0]), seeding.path_depth_range[1])
+            track, seeds = rescale(track, seeds, cams_to_world_cv[:, :3, 3], k, factor)
+            path.applied = True
         own = evidence * track.footprints
         extra = coverage_seeds(track, seeds.points, seeds.radii, own, depth, latent, Ks, cams_to_world_cv, times, k, seeding)
         points = torch.cat([seeds.points, extra.points])
@@ -281,10 +297,8 @@ def initialise_motion(
         radius_px = (float(region.sum()) / torch.pi) ** 0.5
         shift_px = unexplained_shift(track, k, viewmats, Ks, cams_to_world_cv)
         shift = shift_px / max(radius_px, 1e-9)
-        iou = track.iou[torch.isfinite(track.iou)]
         presence = len(iou) / n
         mean_iou = float(iou.mean()) if len(iou) else 0.0
-        rigid_fit = len(iou) > 0 and mean_iou >= seeding.min_object_iou
         # a region followed through most of the clip is real even when one rigid silhouette fits it
         # poorly (a deforming or articulated object): its track then only carries it, see below
         needed_px = needed_shift(radius_px, width, seeding, seeding.still_shift if rigid_fit else seeding.steady_shift)
@@ -297,7 +311,7 @@ def initialise_motion(
             # turn fitted to a changing shape is noise); the MLP residual carries the rest
             track = RigidTrack(track.centre, torch.zeros_like(track.rotvecs), track.translations, track.loss,
                                track.footprints, track.claims, track.iou)
-        result.objects.append(MotionObject(k, every, track, reach, shift, moved, why))
+        result.objects.append(MotionObject(k, every, track, reach, shift, moved, why, path))
         covered |= track.claims
         covered[k] |= region
     movers = result.movers

@@ -1,0 +1,165 @@
+"""A moving object's depth from the shape of its path (trajectory triangulation).
+
+A rigid object that moves independently is seen from one moving camera at one instant each: put
+it twice as far, twice as large, moving along ``e_i + 2 (x_i - e_i)`` (``e_i`` the camera centre
+at latent i) and every training view is the same. The photometric losses cannot tell the depth,
+and the tracked seeds keep the depth they were placed at (a fraction of the static depth behind
+them, i.e. just in front of the background), which is what novel cameras then see wrong (the
+object off its true place by the parallax of its depth error).
+
+What does tell the depth is that objects move simply while the camera's path bends: of all the
+depth scalings ``e_i + a (x_i - e_i)`` of a tracked path, the true one is the one whose 3D path
+is a low-order polynomial in time (trajectory triangulation, Avidan & Shashua 2000). Each
+latent's line of sight gives two linear equations on the polynomial's coefficients
+(``(X(t_i) - e_i) x r_i = 0``), weighted by one over the fitted distance so that the fit
+minimises angles (an unweighted fit favours paths that hug the cameras, where every ray
+passes). A turning object's tracked centre (the front of its seeds) wobbles about the point that
+moves simply (a ball's centre, an arm's hinge), so the fit is tried for a grid of body points and
+the best-fitting one is kept; its factor ``a`` is the median ratio of fitted to tracked distances.
+``rescale`` then applies the factor to the seeds and the track about each latent's camera
+centre, which leaves every training view's projection as it was.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Tuple
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from edygs_ns.model.dynamic_seeding import Seeds
+from edygs_ns.model.rigid_track import RigidTrack, rigid_apply, rotation_matrices
+
+#: Fewest latents with a tracked centre for a path fit (a quadratic in 3D has 9 unknowns).
+MIN_PATH_LATENTS = 8
+#: Smallest ratio of the path fit's least to largest singular value that decides a depth (under
+#: it, e.g. from a still camera, many depths give a polynomial path equally well).
+MIN_CONDITION = 1e-4
+#: Body points tried as the one with the simplest path: a grid of POINT_STEPS per axis within
+#: POINT_REACH object sizes of the track's centre.
+POINT_REACH = 2.0
+POINT_STEPS = 9
+#: Reweighted least-squares rounds of the path fit (each weighs a ray by 1 / its fitted distance).
+ANGULAR_ITERATIONS = 4
+
+
+def _skew(v: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3 3"]:
+    """Cross-product matrices [v]x of [N, 3] vectors."""
+    zero = torch.zeros_like(v[:, 0])
+    return torch.stack([
+        torch.stack([zero, -v[:, 2], v[:, 1]], dim=-1),
+        torch.stack([v[:, 2], zero, -v[:, 0]], dim=-1),
+        torch.stack([-v[:, 1], v[:, 0], zero], dim=-1),
+    ], dim=1)  # fmt: skip
+
+
+def _design(directions: Tensor, tau: Tensor, degree: int) -> Tuple[Tensor, Tensor]:
+    """Per-ray cross-product matrices [B, N, 3, 3] of the unit rays and the linear system of the
+    path's coefficients, [B, 3N, 3(degree + 1)]: [d]x (sum_j tau^j a_j) = [d]x o for every ray."""
+    d = directions / directions.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    basis = torch.stack([tau**j for j in range(degree + 1)], dim=-1)  # [N, D]
+    skew = _skew(d.reshape(-1, 3)).reshape(*d.shape[:-1], 3, 3)
+    design = (basis[None, :, None, :, None] * skew[:, :, :, None, :]).reshape(d.shape[0], d.shape[1] * 3, -1)
+    return skew, design
+
+
+def triangulate_path(origins: Float[Tensor, "N 3"], directions: Float[Tensor, "*B N 3"], times: Float[Tensor, "N"],
+                     degree: int = 2) -> Tuple[Float[Tensor, "*B N"], Float[Tensor, "*B"], float]:
+    """The polynomial path (in time, of ``degree``) closest to the rays from ``origins`` along
+    ``directions``; several sets of directions (a leading batch dimension) fit at once.
+
+    Args:
+        origins: camera centres, world units; directions: rays towards the object (any length).
+        times: time of every ray (any units; rescaled to [-1, 1] for the fit's conditioning).
+        degree: of the path's polynomial in time.
+
+    Returns:
+        [*B, N] signed distance from each origin to the fitted path's point at that time, along
+        the unit ray; [*B] RMS distance of those points from their rays (world units); and the
+        conditioning of the (first) fit (least / largest singular value of its system).
+    """
+    batched = directions.dim() == 3
+    o, d, t = (x.detach().double().cpu() for x in (origins, directions if batched else directions[None], times))
+    span = (t.max() - t.min()).clamp_min(1e-12)
+    tau = 2.0 * (t - t.min()) / span - 1.0
+    skew, design = _design(d, tau, degree)
+    target = (skew @ o[None, :, :, None]).reshape(d.shape[0], -1, 1)
+    basis = torch.stack([tau**j for j in range(degree + 1)], dim=-1)
+    unit = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    distance = d.norm(dim=-1)  # [B, N] start: the tracked distances
+    for _ in range(ANGULAR_ITERATIONS):
+        # rows weighted by 1 / distance: the fit minimises angles (image errors), not lengths,
+        # which would favour a path hugging the cameras (every ray passes through its camera)
+        floor = 1e-3 * distance.abs().median(dim=1, keepdim=True).values.clamp_min(1e-12)
+        weight = (1.0 / distance.abs().clamp_min(floor)).repeat_interleave(3, dim=1)[..., None]
+        coefs = torch.linalg.lstsq(design * weight, target * weight).solution  # [B, 3D, 1]
+        path = torch.einsum("nj,bjk->bnk", basis, coefs.reshape(d.shape[0], degree + 1, 3))
+        distance = ((path - o[None]) * unit).sum(dim=-1)
+    residual = ((design @ coefs - target).square().sum(dim=(1, 2)) / len(t)).sqrt()
+    values = torch.linalg.svdvals(design[0])
+    condition = float(values[-1] / values[0].clamp_min(1e-300))
+    if not batched:
+        distance, residual = distance[0], residual[0]
+    return distance.to(origins.dtype).to(origins.device), residual.to(origins.dtype).to(origins.device), condition
+
+
+@dataclass
+class PathFit:
+    """The depth a tracked object's path gives: ``factor`` on its distance from the cameras, the
+    fitted path's RMS distance from its lines of sight in object sizes (``residual``), and the
+    body point whose path was fitted (``point``, canonical frame, world units); ``applied``:
+    whether the motion initialisation moved the object by it."""
+
+    factor: float
+    residual: float
+    point: Tensor
+    applied: bool = False
+
+
+def path_depth(track: RigidTrack, size: float, eyes: Float[Tensor, "N 3"], times: Float[Tensor, "N"],
+               turns: bool = True, degree: int = 2) -> Optional[PathFit]:
+    """Factor on the distance from the cameras of the tracked object that makes the path of one of
+    its points the polynomial of ``degree`` closest to that point's lines of sight.
+
+    The point is the one whose path fits best: a grid of points within POINT_REACH object sizes
+    (``size``, world units) of the track's centre when the track turns (``turns``; the centre of a
+    spinning ball, the hinge of a swinging arm), else the centre. None with fewer than
+    MIN_PATH_LATENTS latents where the track saw its object, a fit conditioned under MIN_CONDITION
+    (the cameras' path does not decide the depth) or no positive distance."""
+    seen = torch.isfinite(track.iou) if track.iou is not None else torch.ones(len(times), dtype=torch.bool)
+    seen = seen.to(eyes.device)
+    if int(seen.sum()) < MIN_PATH_LATENTS or size <= 0:
+        return None
+    offsets = torch.zeros(1, 3, dtype=eyes.dtype, device=eyes.device)
+    if turns:
+        steps = torch.linspace(-POINT_REACH, POINT_REACH, POINT_STEPS, dtype=eyes.dtype, device=eyes.device) * size
+        offsets = torch.cartesian_prod(steps, steps, steps)
+    points = track.centre + offsets  # [P, 3] canonical
+    rotations = rotation_matrices(track.rotvecs[seen])
+    paths = rigid_apply(points, track.centre, rotations, track.translations[seen]).transpose(0, 1)  # [P, n, 3]
+    rays = paths - eyes[seen]
+    distance, residual, condition = triangulate_path(eyes[seen], rays, times[seen].to(eyes.dtype), degree)
+    if condition < MIN_CONDITION:
+        return None
+    ratio = distance / rays.norm(dim=-1).clamp_min(1e-12)  # [P, n]
+    factor = ratio.median(dim=1).values
+    relative = residual / (factor.clamp_min(1e-12) * size)  # in sizes of the object at the fitted depth
+    relative = torch.where(factor > 0, relative, torch.full_like(relative, float("inf")))
+    best = int(torch.argmin(relative))
+    if not bool(torch.isfinite(relative[best])):
+        return None
+    return PathFit(float(factor[best]), float(relative[best]), points[best])
+
+
+def rescale(track: RigidTrack, seeds: Seeds, eyes: Float[Tensor, "N 3"], ref: int, factor: float) -> Tuple[RigidTrack, Seeds]:
+    """The track and its seeds ``factor`` times as far from the cameras: the seeds and the centre
+    about the reference latent's camera, every latent's position about its own camera, the seeds'
+    radii scaled alike (every latent's view of the object unchanged). Rotations stay as they are."""
+    origin = eyes[ref]
+    centre = origin + factor * (track.centre - origin)
+    positions = eyes + factor * (track.centre + track.translations - eyes)
+    scaled = RigidTrack(centre, track.rotvecs, positions - centre, track.loss, track.footprints, track.claims, track.iou)
+    points = origin + factor * (seeds.points - origin)
+    return scaled, Seeds(points, seeds.colors, seeds.radii * factor, centre)

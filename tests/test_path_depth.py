@@ -1,0 +1,83 @@
+"""A moving object's depth from the shape of its path (model/path_depth.py)."""
+
+from __future__ import annotations
+
+import torch
+
+from edygs_ns.model.dynamic_seeding import Seeds
+from edygs_ns.model.path_depth import path_depth, rescale, triangulate_path
+from edygs_ns.model.rigid_track import RigidTrack, rigid_apply, rotation_matrices
+
+N = 40
+TIMES = torch.linspace(0.0, 1.0, N)
+
+
+def _eyes(times: torch.Tensor) -> torch.Tensor:
+    """A camera sweeping an arc (its path bends; a straight one would not decide the depth)."""
+    return torch.stack([0.6 * torch.sin(3.0 * times), 0.2 * torch.cos(3.0 * times), 1.5 - 0.3 * times], dim=-1)
+
+
+def _object_path(times: torch.Tensor) -> torch.Tensor:
+    """An object moving at constant acceleration in front of the camera."""
+    return torch.stack([-0.5 + 1.0 * times, -0.2 + 0.4 * times**2, -2.0 + 0.3 * times], dim=-1)
+
+
+def test_triangulation_finds_the_distance_of_a_polynomial_path():
+    eyes, path = _eyes(TIMES), _object_path(TIMES)
+    rays = path - eyes
+    distance, residual, condition = triangulate_path(eyes, rays, TIMES, degree=2)
+    assert condition > 1e-4 and float(residual) < 1e-6
+    assert torch.allclose(distance, rays.norm(dim=-1), rtol=1e-4)
+
+
+def test_a_still_camera_decides_no_depth():
+    eyes = torch.zeros(N, 3)
+    rays = _object_path(TIMES) - eyes
+    _, _, condition = triangulate_path(eyes, rays, TIMES, degree=2)
+    assert condition < 1e-6
+    track = RigidTrack(rays[0], torch.zeros(N, 3), rays - rays[0], torch.zeros(N), iou=torch.ones(N))
+    assert path_depth(track, 0.1, eyes, TIMES) is None
+
+
+def test_a_track_placed_too_far_is_brought_back_to_its_path():
+    eyes, truth = _eyes(TIMES), _object_path(TIMES)
+    ref = N // 2
+    too_far = eyes + 1.4 * (truth - eyes)  # what the seeding at the static depth would give
+    centre = too_far[ref]
+    iou = torch.ones(N)
+    iou[:5] = float("nan")  # latents where the object was not seen do not count
+    track = RigidTrack(centre, 0.02 * torch.arange(N, dtype=torch.float32)[:, None] * torch.tensor([0.0, 1.0, 0.0]),
+                       too_far - centre, torch.zeros(N), iou=iou)
+    fit = path_depth(track, 0.1, eyes, TIMES, turns=False)
+    assert fit is not None and abs(fit.factor - 1 / 1.4) < 1e-3 and fit.residual < 1e-3
+    factor = fit.factor
+
+    points = centre + 0.1 * torch.randn(50, 3, generator=torch.Generator().manual_seed(0))
+    seeds = Seeds(points, torch.rand(50, 3), torch.full((50,), 0.01), centre)
+    moved, placed = rescale(track, seeds, eyes, ref, factor)
+    assert torch.allclose(moved.centre + moved.translations, truth, atol=1e-4)
+    assert torch.allclose(placed.radii, seeds.radii * factor)
+    # every latent sees the rescaled object where it saw the old one: same direction from its camera
+    before = rigid_apply(seeds.points, track.centre, rotation_matrices(track.rotvecs), track.translations) - eyes[:, None]
+    after = rigid_apply(placed.points, moved.centre, rotation_matrices(moved.rotvecs), moved.translations) - eyes[:, None]
+    assert torch.allclose(torch.nn.functional.normalize(before, dim=-1), torch.nn.functional.normalize(after, dim=-1), atol=1e-5)
+    assert torch.allclose(after.norm(dim=-1), factor * before.norm(dim=-1), rtol=1e-4)
+
+
+def test_a_spinning_object_is_placed_by_the_point_that_moves_simply():
+    """The tracked centre is on the object's front (where its seeds were); spinning, it wobbles
+    about the true centre, whose path is the simple one. Searching the body point finds it."""
+    eyes, truth = _eyes(TIMES), _object_path(TIMES)
+    ref, size = N // 2, 0.1
+    front = truth[ref] + torch.tensor([0.0, 0.0, 2.0 * size])  # 2 sizes in front of the centre
+    rotvecs = (TIMES - TIMES[ref])[:, None] * torch.tensor([0.0, 3.0, 0.0])  # 170° over the clip
+    rotations = rotation_matrices(rotvecs)
+    positions = torch.einsum("nij,j->ni", rotations, front - truth[ref]) + truth
+    exact = RigidTrack(front, rotvecs, positions - front, torch.zeros(N), iou=torch.ones(N))
+    seeds = Seeds(front[None], torch.rand(1, 3), torch.full((1,), 0.01), front)
+    too_far, _ = rescale(exact, seeds, eyes, ref, 1.4)
+    found = path_depth(too_far, 1.4 * size, eyes, TIMES, turns=True)
+    centre_only = path_depth(too_far, 1.4 * size, eyes, TIMES, turns=False)
+    assert found is not None and centre_only is not None
+    assert abs(found.factor - 1 / 1.4) < 0.01 and found.residual < 0.01
+    assert abs(centre_only.factor - 1 / 1.4) > 0.02 and centre_only.residual > 10 * found.residual
