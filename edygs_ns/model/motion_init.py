@@ -58,7 +58,7 @@ from torch import Tensor
 
 from edygs_ns.model.dynamic_seeding import EIGHT_CONNECTED, DynamicSeedingConfig, Seeds, seed_gaussians
 from edygs_ns.model.path_depth import PathFit, path_depth, rescale
-from edygs_ns.model.rigid_track import RigidTrack, RigidTrackConfig, coverage_seeds, track_rigid
+from edygs_ns.model.rigid_track import RigidTrack, RigidTrackConfig, coverage_seeds, spread, track_rigid
 from edygs_ns.render.contract import RasterBackend
 
 
@@ -163,8 +163,7 @@ def unexplained_shift(track: RigidTrack, ref: int, viewmats: Float[Tensor, "N 4 
     was seeded at may be wrong, which alone makes a static flaw seem to move as the camera moves).
     The largest distance over the latents where the track saw the object, minimised over depths."""
     n = viewmats.shape[0]
-    seen = torch.isfinite(track.iou) if track.iou is not None else torch.ones(n, dtype=torch.bool)
-    seen = seen.to(viewmats.device)
+    seen = track.seen().to(viewmats.device)
     if not bool(seen.any()):
         return 0.0
     tracked = _project(track.centre + track.translations, viewmats, Ks)[seen]
@@ -279,12 +278,11 @@ def initialise_motion(
             continue
         track = track_rigid(seeds.points, seeds.colors, seeds.radii, seeds.centre, times, evidence, latent, statics,
                             viewmats, Ks, k, backend, tracking)
-        iou = track.iou[torch.isfinite(track.iou)]
+        iou = track.iou[track.seen()]
         rigid_fit = len(iou) > 0 and float(iou.mean()) >= seeding.min_object_iou
         path = None
         if seeding.path_depth:
-            size = float((seeds.points - seeds.centre).norm(dim=-1).square().mean().sqrt())
-            path = path_depth(track, size, cams_to_world_cv[:, :3, 3], times, turns=rigid_fit)
+            path = path_depth(track, float(spread(seeds.points, seeds.centre)), cams_to_world_cv[:, :3, 3], times, turns=rigid_fit)
         if path is not None and path.residual <= seeding.path_depth_max_residual:
             factor = min(max(path.factor, seeding.path_depth_range[0]), seeding.path_depth_range[1])
             track, seeds = rescale(track, seeds, cams_to_world_cv[:, :3, 3], k, factor)

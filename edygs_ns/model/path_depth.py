@@ -22,7 +22,7 @@ centre, which leaves every training view's projection as it was.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Optional, Tuple
 
 import torch
@@ -55,13 +55,12 @@ def _skew(v: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3 3"]:
     ], dim=1)  # fmt: skip
 
 
-def _design(directions: Tensor, tau: Tensor, degree: int) -> Tuple[Tensor, Tensor]:
-    """Per-ray cross-product matrices [B, N, 3, 3] of the unit rays and the linear system of the
-    path's coefficients, [B, 3N, 3(degree + 1)]: [d]x (sum_j tau^j a_j) = [d]x o for every ray."""
-    d = directions / directions.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    basis = torch.stack([tau**j for j in range(degree + 1)], dim=-1)  # [N, D]
-    skew = _skew(d.reshape(-1, 3)).reshape(*d.shape[:-1], 3, 3)
-    design = (basis[None, :, None, :, None] * skew[:, :, :, None, :]).reshape(d.shape[0], d.shape[1] * 3, -1)
+def _design(unit: Tensor, basis: Tensor) -> Tuple[Tensor, Tensor]:
+    """Per-ray cross-product matrices [B, N, 3, 3] of the unit rays [B, N, 3] and the linear system
+    of the path's coefficients, [B, 3N, 3D] for the time basis [N, D]:
+    [d]x (sum_j tau^j a_j) = [d]x o for every ray."""
+    skew = _skew(unit.reshape(-1, 3)).reshape(*unit.shape[:-1], 3, 3)
+    design = (basis[None, :, None, :, None] * skew[:, :, :, None, :]).reshape(unit.shape[0], unit.shape[1] * 3, -1)
     return skew, design
 
 
@@ -84,10 +83,10 @@ def triangulate_path(origins: Float[Tensor, "N 3"], directions: Float[Tensor, "*
     o, d, t = (x.detach().double().cpu() for x in (origins, directions if batched else directions[None], times))
     span = (t.max() - t.min()).clamp_min(1e-12)
     tau = 2.0 * (t - t.min()) / span - 1.0
-    skew, design = _design(d, tau, degree)
-    target = (skew @ o[None, :, :, None]).reshape(d.shape[0], -1, 1)
-    basis = torch.stack([tau**j for j in range(degree + 1)], dim=-1)
+    basis = torch.stack([tau**j for j in range(degree + 1)], dim=-1)  # [N, D]
     unit = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    skew, design = _design(unit, basis)
+    target = (skew @ o[None, :, :, None]).reshape(d.shape[0], -1, 1)
     distance = d.norm(dim=-1)  # [B, N] start: the tracked distances
     for _ in range(ANGULAR_ITERATIONS):
         # rows weighted by 1 / distance: the fit minimises angles (image errors), not lengths,
@@ -128,8 +127,7 @@ def path_depth(track: RigidTrack, size: float, eyes: Float[Tensor, "N 3"], times
     spinning ball, the hinge of a swinging arm), else the centre. None with fewer than
     MIN_PATH_LATENTS latents where the track saw its object, a fit conditioned under MIN_CONDITION
     (the cameras' path does not decide the depth) or no positive distance."""
-    seen = torch.isfinite(track.iou) if track.iou is not None else torch.ones(len(times), dtype=torch.bool)
-    seen = seen.to(eyes.device)
+    seen = track.seen().to(eyes.device)
     if int(seen.sum()) < MIN_PATH_LATENTS or size <= 0:
         return None
     offsets = torch.zeros(1, 3, dtype=eyes.dtype, device=eyes.device)
@@ -160,6 +158,6 @@ def rescale(track: RigidTrack, seeds: Seeds, eyes: Float[Tensor, "N 3"], ref: in
     origin = eyes[ref]
     centre = origin + factor * (track.centre - origin)
     positions = eyes + factor * (track.centre + track.translations - eyes)
-    scaled = RigidTrack(centre, track.rotvecs, positions - centre, track.loss, track.footprints, track.claims, track.iou)
+    scaled = replace(track, centre=centre, translations=positions - centre)
     points = origin + factor * (seeds.points - origin)
     return scaled, Seeds(points, seeds.colors, seeds.radii * factor, centre)

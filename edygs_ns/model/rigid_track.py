@@ -98,6 +98,12 @@ class RigidTrack:
     def rotations(self) -> Float[Tensor, "N 3 3"]:
         return rotation_matrices(self.rotvecs)
 
+    def seen(self) -> Tensor:
+        """[N] bool: the latents where the track saw its object (every latent without ``iou``)."""
+        if self.iou is None:
+            return torch.ones(len(self.rotvecs), dtype=torch.bool, device=self.rotvecs.device)
+        return torch.isfinite(self.iou)
+
     def apply(self, points: Float[Tensor, "S 3"]) -> Float[Tensor, "N S 3"]:
         """Positions of canonical points at every latent."""
         return rigid_apply(points, self.centre, self.rotations(), self.translations)
@@ -121,6 +127,11 @@ def twist_about(rotvec: Float[Tensor, "3"], axis: Float[Tensor, "3"]) -> Float[T
     angle = (rotvec.square().sum() + 1e-24).sqrt()
     along = torch.sin(angle / 2) / angle * (rotvec @ axis)  # the quaternion's vector part along the axis
     return axis * 2.0 * torch.atan2(along, torch.cos(angle / 2))
+
+
+def spread(points: Float[Tensor, "S 3"], centre: Float[Tensor, "3"]) -> Tensor:
+    """RMS distance of ``points`` from ``centre`` (world units, a 0-d tensor): an object's size."""
+    return (points - centre).norm(dim=-1).square().mean().sqrt()
 
 
 def rigid_apply(points: Tensor, centre: Tensor, rotations: Tensor, translations: Tensor) -> Tensor:
@@ -173,7 +184,7 @@ def track_rigid(
     n = backgrounds.shape[0]
     device = points.device
     eyes = camera_centres(viewmats)  # [N, 3] world: the lines of sight of the outline's twist
-    size = (points - centre).norm(dim=-1).square().mean().sqrt().clamp_min(1e-6)
+    size = spread(points, centre).clamp_min(1e-6)
     rotvecs = torch.zeros(n, 3, device=device)
     units = torch.zeros(n, 3, device=device)  # translation / size
     losses = torch.zeros(n, device=device)
