@@ -20,7 +20,8 @@ def test_short_run_shape_resets_after_the_switch_and_refines_after_it():
 
 
 def test_dry_mode_writes_json_and_markdown(tmp_path):
-    cfg = gpu_check.GpuCheckConfig(out=tmp_path / "gc", device="cpu", train_iters=30, bench_iters=12)
+    cfg = gpu_check.GpuCheckConfig(out=tmp_path / "gc", device="cpu", train_iters=30, bench_iters=12,
+                                      results=tmp_path / "kept")
     data = gpu_check.main(cfg)
     out = tmp_path / "gc"
     written = json.loads((out / "gpu_check.json").read_text())
@@ -37,3 +38,4 @@ def test_dry_mode_writes_json_and_markdown(tmp_path):
     md = (out / "gpu_check.md").read_text()
     assert md.startswith("# GPU check (dry mode, CPU)") and "| bench | ok |" in md and "## Benchmark: 48x36" in md
     assert "edygs-doctor" in md and data["ok"]
+    assert (tmp_path / "kept" / "gpu_check.md").read_text() == md  # the --results copy, final too
