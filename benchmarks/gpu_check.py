@@ -182,8 +182,10 @@ def stage_parity(cfg: GpuCheckConfig) -> Dict[str, Any]:
     return {"command": " ".join(cmd[2:]), **counts, "summary": run.stdout.strip().splitlines()[-1] if run.stdout.strip() else ""}
 
 
-def make_scene(root: Path, size: tuple, dry: bool, seed: int = 0) -> Path:
-    """edygs-synth + edygs-process (true poses) into root/{raw,scene}; reused when there."""
+def make_scene(root: Path, size: Optional[tuple], dry: bool, seed: int = 0, workers: int = 0) -> Path:
+    """edygs-synth + edygs-process (true poses) into root/{raw,scene}, in this process; reused when
+    there. ``size``: (width, height, frames), None for edygs-synth's defaults (the demo scene);
+    ``workers``: the simulator's render processes (0: one per core; the dry mode: 1)."""
     from edygs_ns.scripts.process import ProcessConfig, process
     from edygs_ns.scripts.synth import SynthConfig, write_synthetic_scene
 
@@ -191,10 +193,10 @@ def make_scene(root: Path, size: tuple, dry: bool, seed: int = 0) -> Path:
     scene = root / "scene"
     if (scene / "transforms.json").exists():
         return scene
-    width, height, frames = size
-    extra = TINY_SIM if dry else {}
-    raw = write_synthetic_scene(SynthConfig(output_dir=root / "raw", width=width, height=height, n_frames=frames, seed=seed,
-                                            overwrite=True, **extra))
+    extra = dict(TINY_SIM) if dry else {}
+    if size is not None:
+        extra.update(width=size[0], height=size[1], n_frames=size[2])
+    raw = write_synthetic_scene(SynthConfig(output_dir=root / "raw", seed=seed, overwrite=True, workers=1 if dry else workers, **extra))
     config = ProcessConfig(output=scene, poses="given", overwrite=True, **({"num_random_points": 2000} if dry else {}))
     config.inputs.exposures = raw / "exposures.csv"
     config.inputs.events = raw / "events.h5"
@@ -208,7 +210,8 @@ def start_scene(cfg: GpuCheckConfig, name: str, size: tuple) -> Optional[subproc
     root = cfg.out / name
     if (root / "scene" / "transforms.json").exists():
         return None
-    call = f"import gpu_check as g; g.make_scene({str(root)!r}, {tuple(size)!r}, {cfg.device == 'cpu'!r})"
+    workers = max(1, (os.cpu_count() or 2) - 2)  # leave two cores to the stages running meanwhile
+    call = f"import gpu_check as g; g.make_scene({str(root)!r}, {tuple(size)!r}, {cfg.device == 'cpu'!r}, workers={workers})"
     log = open(cfg.out / f"{name}.log", "w")
     return subprocess.Popen([sys.executable, "-c", call], cwd=Path(__file__).resolve().parent, stdout=log, stderr=subprocess.STDOUT)
 
@@ -265,11 +268,14 @@ def ns_train(args: List[str], probe: Optional[Dict[str, Any]] = None) -> Path:
     trainer.setup()
     if probe is not None:
         attach_probe(trainer.pipeline.model, probe)
+    if torch.cuda.is_available():
+        torch.cuda.reset_peak_memory_stats()
     t0 = time.time()
     trainer.train()
     if probe is not None:
         if torch.cuda.is_available():
             torch.cuda.synchronize()
+            probe["peak_gpu_memory_gib"] = round(torch.cuda.max_memory_allocated() / 2**30, 2)
         probe["train_seconds"] = round(time.time() - t0, 2)
         probe["seconds_per_step"] = round(probe["train_seconds"] / max(config.max_num_iterations, 1), 4)
         probe["gaussians_final"] = int(len(trainer.pipeline.model.gauss_params["means"]))
@@ -394,7 +400,8 @@ def stage_bench(cfg: GpuCheckConfig, check: Check, child: Optional[subprocess.Po
                                novel_pose_fit=NovelPoseFitConfig(steps=cfg.size("eval_fit_steps")))
         rows["runs"][label] = {"command": "ns-train " + " ".join(shlex.quote(a) for a in args),
                                "train_seconds": probe["train_seconds"], "seconds_per_step": probe["seconds_per_step"],
-                               "gaussians_final": probe["gaussians_final"], **_metric_row(metrics, label)}
+                               "gaussians_final": probe["gaussians_final"], "peak_gpu_memory_gib": probe.get("peak_gpu_memory_gib"),
+                               **_metric_row(metrics, label)}
         check.data["stages"]["bench"] = {"status": "running", **rows}
         check.write()
     return rows

@@ -29,8 +29,6 @@ import argparse
 import json
 import os
 import statistics
-import subprocess
-import sys
 import time
 from collections import defaultdict
 from contextlib import contextmanager
@@ -76,17 +74,11 @@ class Clock:
 
 
 def make_scene(scene_dir: Path) -> Path:
-    """The demo's synthetic scene with the true poses, written once."""
-    scene = scene_dir / "scene"
-    if (scene / "transforms.json").exists():
-        return scene
-    bin_dir = Path(sys.executable).parent
-    subprocess.run([str(bin_dir / "edygs-synth"), "--output-dir", str(scene_dir / "raw"), "--seed", "0", "--overwrite"],
-                   check=True)
-    subprocess.run([str(bin_dir / "edygs-process"), "--exposures", str(scene_dir / "raw" / "exposures.csv"),
-                    "--events", str(scene_dir / "raw" / "events.h5"), "--output", str(scene), "--poses", "given",
-                    "--overwrite"], check=True)
-    return scene
+    """The demo's synthetic scene with the true poses, written once (in this process: no console
+    scripts needed)."""
+    from gpu_check import make_scene as make_check_scene
+
+    return make_check_scene(scene_dir, None, dry=False)
 
 
 def trainer_for(scene: Path, backend: str, args: argparse.Namespace, output: Path):

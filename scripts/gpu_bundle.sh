@@ -57,8 +57,8 @@ if ! "$py" -c "import torch, sys; sys.exit(torch.__version__.split('+')[0] != '$
 fi
 torch_full="$("$py" -c 'import torch; print(torch.__version__)')"
 # 2. gsplat with compiled kernels (setup.py's gsplat.csrc); the sdist lacks glm, the wheel has it
-tag="gsplat-1.4.0-py$pyv-torch$torch_full-sm$arch"
-if [ ! -f "$work/$tag.whl" ]; then
+built="$work/gsplat-1.4.0-py$pyv-torch$torch_full-sm$arch"  # the wheel, under its own name
+if ! ls "$built"/gsplat-1.4.0-*.whl >/dev/null 2>&1; then
   rm -rf "$work/gsplat" && mkdir -p "$work/gsplat"
   "$py" -m pip download -q --no-deps --no-binary=:all: -d "$work/gsplat" gsplat==1.4.0
   "$py" -m pip download -q --no-deps --only-binary=:all: -d "$work/gsplat" gsplat==1.4.0
@@ -69,7 +69,7 @@ if [ ! -f "$work/$tag.whl" ]; then
   echo "[gpu_bundle] compiling gsplat's kernels for sm_$arch against torch $torch_full (CUDA_HOME=$cuda_home; about 30-50 min on 2 cores)"
   (cd "$work/gsplat/gsplat-1.4.0" && CUDA_HOME="$cuda_home" TORCH_CUDA_ARCH_LIST="$arch" MAX_JOBS="${MAX_JOBS:-2}" \
      PATH="$work/py/bin:$PATH" "$py" -m pip wheel -q . --no-build-isolation --no-deps -w "$work/gsplat/dist")
-  cp "$work"/gsplat/dist/gsplat-1.4.0-*.whl "$work/$tag.whl.part" && mv "$work/$tag.whl.part" "$work/$tag.whl"
+  rm -rf "$built.part" && mkdir -p "$built.part" && cp "$work"/gsplat/dist/gsplat-1.4.0-*.whl "$built.part/" && mv "$built.part" "$built"
 fi
 # 3. wheels of what the device image lacks, at the versions this venv runs (fpsample: the newest
 #    with a wheel for that Python; nerfstudio only imports it)
@@ -85,11 +85,11 @@ pins="$($host -c 'import importlib.metadata as m, sys; print(" ".join(f"{n}=={m.
 "$host" -m pip download -q "${plat[@]}" -d "$work/wheels" $pins fpsample
 # 4. one folder: the wheels, gsplat, edygs_ns's dist-info (entry points; the code is the working tree)
 rm -rf "$work/site" "$work/edygs" && mkdir -p "$work/site"
-"$host" -m pip install -q --no-deps --no-compile --target "$work/site" "$work"/wheels/*.whl "$work/$tag.whl"
+"$py" -m pip install -q --no-deps --no-compile --target "$work/site" "$work"/wheels/*.whl "$built"/gsplat-1.4.0-*.whl
 "$host" -m pip wheel -q --no-deps --no-build-isolation -w "$work/edygs" .
 (cd "$work/site" && unzip -q -o "$work"/edygs/edygs_ns-*.whl 'edygs_ns-*.dist-info/*')
 "$py" -c "import json, sys; json.dump({'python': '$pyv', 'torch': '${torch_full%%+*}', 'torch_full': '$torch_full', 'arch': '$arch',
-  'wheels': sorted(__import__('os').listdir('$work/wheels')) + ['$tag.whl']}, open('$out/bundle.json', 'w'), indent=1)"
+  'wheels': sorted(__import__('os').listdir('$work/wheels')) + sorted(__import__('os').listdir('$built'))}, open('$out/bundle.json', 'w'), indent=1)"
 echo "[gpu_bundle] packing $out/site.tar.xz"
 tar -C "$work/site" -cf - . | xz -9 -T0 > "$out/site.tar.xz.part" && mv "$out/site.tar.xz.part" "$out/site.tar.xz"
 echo "[gpu_bundle] done: $(du -h "$out/site.tar.xz" | cut -f1) in $out/site.tar.xz (carry '$out'; on the device: eval \"\$(bash scripts/gpu_bundle.sh use)\")"

@@ -220,6 +220,17 @@ def test_same_seed_same_events_other_seed_different(capture: Path, tmp_path: Pat
     assert len(other["t"]) != len(first["t"]) or not np.array_equal(other["t"], first["t"])
 
 
+def test_parallel_workers_write_the_same_capture(capture: Path, tmp_path: Path) -> None:
+    again = write_synthetic_scene(tiny_config(tmp_path / "two", workers=2))
+    first, second = load_events(capture), load_events(again)
+    for name in ("x", "y", "t", "p"):
+        assert np.array_equal(first[name], second[name])
+    files = sorted(p.relative_to(capture) for p in capture.rglob("*.png"))
+    assert len(files) > 20 and files == sorted(p.relative_to(again) for p in again.rglob("*.png"))
+    for rel in files:
+        assert (capture / rel).read_bytes() == (again / rel).read_bytes(), rel
+
+
 @pytest.mark.parametrize("motion", ["linear", "bouncing"])
 def test_other_motions_move_the_object(tmp_path: Path, motion: str) -> None:
     world = build_world(tiny_config(tmp_path, motion=motion))

@@ -11,11 +11,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import multiprocessing
+import os
 import shutil
 from collections import defaultdict
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, Iterable, Iterator, List, Optional, Sequence, Tuple
 
 import numpy as np
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -98,6 +101,9 @@ class SynthConfig:
     """A novel view at the middle latent instant of every novel_stride-th blurry frame."""
     supersample: int = 2
     """Sub-pixel samples per pixel side for anti-aliasing (1: none)."""
+    workers: int = 1
+    """Processes rendering the simulator's instants and novel views in parallel (0: one per CPU
+    core); the capture is the same."""
     overwrite: bool = False
     """Replace the capture in a non-empty output folder."""
 
@@ -115,7 +121,7 @@ def _validate(config: SynthConfig) -> None:
     non_negative = {
         "threshold_sigma": config.threshold_sigma, "refractory_us": config.refractory_us,
         "object_speed": config.object_speed, "camera_speed": config.camera_speed,
-        "camera_sway": config.camera_sway,
+        "camera_sway": config.camera_sway, "workers": config.workers,
     }
     for name, value in non_negative.items():
         if value < 0:
@@ -242,6 +248,57 @@ def _progress() -> Progress:
     )
 
 
+#: The world the forked workers of _world_map draw (set before the pool starts).
+_WORKER_WORLD: Optional[SynthWorld] = None
+
+
+def _limit_worker_threads() -> None:
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        return
+    threadpool_limits(1)
+
+
+def _in_worker(job: Tuple[Callable[[SynthWorld, Any], Any], Any]) -> Any:
+    fn, item = job
+    assert _WORKER_WORLD is not None
+    return fn(_WORKER_WORLD, item)
+
+
+@contextmanager
+def _world_map(world: SynthWorld, fn: Callable[[SynthWorld, Any], Any], items: Sequence[Any], workers: int,
+               chunksize: int = 1) -> Iterator[Iterable[Any]]:
+    """``fn(world, item)`` for every item, in order: here, or by ``workers`` forked processes (0: one
+    per core) where the platform forks. ``fn`` must be a module-level function."""
+    global _WORKER_WORLD
+    n = min(workers or os.cpu_count() or 1, len(items))
+    if n <= 1 or "fork" not in multiprocessing.get_all_start_methods():
+        yield (fn(world, item) for item in items)
+        return
+    _WORKER_WORLD = world
+    try:
+        with multiprocessing.get_context("fork").Pool(n, initializer=_limit_worker_threads) as pool:
+            yield pool.imap(_in_worker, [(fn, item) for item in items], chunksize=chunksize)
+    finally:
+        _WORKER_WORLD = None
+
+
+def _render_at(world: SynthWorld, t_us: int) -> Tuple[np.ndarray, np.ndarray]:
+    return world.render(t_us)
+
+
+def _novel_view(world: SynthWorld, item: Tuple[int, float]) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The novel view at (t µs, offset): its pose, render, instance ids and co-visibility counts."""
+    t, offset = item
+    pose = world.camera_path.novel_c2w(t / US_PER_S, offset)
+    rgb, instance = world.render(t, pose)
+    latent_times = [int(v) for v in world.timeline.latents.ravel()]
+    counts = covisible_counts(world.scene, world.camera, pose, world.posed(t), [world.c2w(v) for v in latent_times],
+                              [world.posed(v) for v in latent_times])
+    return pose, rgb, instance, counts
+
+
 def _simulate_clip(world: SynthWorld, config: SynthConfig, folder: Path) -> Tuple[EventArray, List[Dict[str, Any]]]:
     """Render every simulator instant once: feed the simulator, average sub-frames into blurry
     frames, save the latent ground truth. Returns the events and the latent records."""
@@ -264,22 +321,23 @@ def _simulate_clip(world: SynthWorld, config: SynthConfig, folder: Path) -> Tupl
     records: List[Dict[str, Any]] = []
     with _progress() as progress:
         task = progress.add_task("frame 0", total=len(tl.sim_times), events=0)
-        for t in (int(v) for v in tl.sim_times):
-            rgb, instance = world.render(t)
-            events = sim.feed(to_grey(rgb), t)
-            parts.append(events)
-            n_events += len(events)
-            for p in subframe_of.get(t, ()):
-                sums[p] = sums.get(p, 0.0) + rgb.astype(np.float64)
-                counts[p] += 1
-                if counts[p] == config.n_subframes:
-                    _save_rgb(folder / "frames" / f"{p:04d}.png", sums.pop(p) / config.n_subframes)
-            for p, j in latent_of.get(t, ()):
-                name = f"{p:04d}_{j}.png"
-                _save_gt(folder, LATENT_DIRS, name, rgb, instance)
-                records.append(_gt_entry(world, LATENT_DIRS, name, world.c2w(t), t, p, j))
-            frame = int(np.searchsorted(tl.exposure_start, t, side="right")) - 1
-            progress.update(task, advance=1, events=n_events, description=f"frame {max(frame, 0) + 1}/{config.n_frames}")
+        times = [int(v) for v in tl.sim_times]
+        with _world_map(world, _render_at, times, config.workers, chunksize=4) as renders:
+            for t, (rgb, instance) in zip(times, renders):
+                events = sim.feed(to_grey(rgb), t)
+                parts.append(events)
+                n_events += len(events)
+                for p in subframe_of.get(t, ()):
+                    sums[p] = sums.get(p, 0.0) + rgb.astype(np.float64)
+                    counts[p] += 1
+                    if counts[p] == config.n_subframes:
+                        _save_rgb(folder / "frames" / f"{p:04d}.png", sums.pop(p) / config.n_subframes)
+                for p, j in latent_of.get(t, ()):
+                    name = f"{p:04d}_{j}.png"
+                    _save_gt(folder, LATENT_DIRS, name, rgb, instance)
+                    records.append(_gt_entry(world, LATENT_DIRS, name, world.c2w(t), t, p, j))
+                frame = int(np.searchsorted(tl.exposure_start, t, side="right")) - 1
+                progress.update(task, advance=1, events=n_events, description=f"frame {max(frame, 0) + 1}/{config.n_frames}")
     events = EventArray(
         x=np.concatenate([e.x for e in parts]),
         y=np.concatenate([e.y for e in parts]),
@@ -295,18 +353,14 @@ def _render_novel(world: SynthWorld, config: SynthConfig, folder: Path) -> List[
     how many training latents saw each of their pixels (sim/covisibility.py)."""
     j = (config.k - 1) // 2
     records = []
-    latent_times = [int(t) for t in world.timeline.latents.ravel()]
-    train_c2w = [world.c2w(t) for t in latent_times]
-    train_objects = [world.posed(t) for t in latent_times]
-    for p in range(0, config.n_frames, config.novel_stride):
-        t = int(world.timeline.latents[p, j])
-        pose = world.camera_path.novel_c2w(t / US_PER_S, config.novel_offset)
-        rgb, instance = world.render(t, pose)
-        name = f"{p:04d}_{j}.png"
-        _save_gt(folder, NOVEL_DIRS, name, rgb, instance)
-        counts = covisible_counts(world.scene, world.camera, pose, world.posed(t), train_c2w, train_objects)
-        Image.fromarray(np.minimum(counts, UINT8_MAX).astype(np.uint8)).save(folder / "gt" / NOVEL_COVISIBLE_DIR / name)
-        records.append({**_gt_entry(world, NOVEL_DIRS, name, pose, t, p, j), "covisible_path": f"{NOVEL_COVISIBLE_DIR}/{name}"})
+    frames = list(range(0, config.n_frames, config.novel_stride))
+    items = [(int(world.timeline.latents[p, j]), config.novel_offset) for p in frames]
+    with _world_map(world, _novel_view, items, config.workers) as views:
+        for p, (t, _), (pose, rgb, instance, counts) in zip(frames, items, views):
+            name = f"{p:04d}_{j}.png"
+            _save_gt(folder, NOVEL_DIRS, name, rgb, instance)
+            Image.fromarray(np.minimum(counts, UINT8_MAX).astype(np.uint8)).save(folder / "gt" / NOVEL_COVISIBLE_DIR / name)
+            records.append({**_gt_entry(world, NOVEL_DIRS, name, pose, t, p, j), "covisible_path": f"{NOVEL_COVISIBLE_DIR}/{name}"})
     return records
 
 
