@@ -136,7 +136,7 @@ class Check:
         t0 = time.time()
         try:
             result = {"status": "ok", **fn()}
-        except Exception as exc:  # noqa: BLE001 - a failed stage is a result; the next ones still run
+        except (Exception, SystemExit) as exc:  # noqa: BLE001 - a failed stage is a result; the next ones still run
             result = {"status": "failed", "error": f"{type(exc).__name__}: {exc}".splitlines()[0][:500],
                       "traceback": traceback.format_exc()[-3000:]}
         result["seconds"] = round(time.time() - t0, 1)
@@ -345,9 +345,17 @@ def stage_render(cfg: GpuCheckConfig, config: Path) -> Dict[str, Any]:
                                                  "aspect": width / height, "render_time": t} for t in times]}))
     out = cfg.out / "render"
     names = ["rgb", "mask", "rgb_static", "depth"]
+    from nerfstudio.utils import install_checks
+
     t0 = time.time()
-    RenderCameraPath(load_config=config, camera_path_filename=path, output_path=out, output_format="images",
-                     rendered_output_names=names).main()
+    check_ffmpeg = install_checks.check_ffmpeg_installed
+    if shutil.which("ffmpeg") is None:  # images need no ffmpeg, but ns-render exits without it
+        install_checks.check_ffmpeg_installed = lambda: None
+    try:
+        RenderCameraPath(load_config=config, camera_path_filename=path, output_path=out, output_format="images",
+                         rendered_output_names=names).main()
+    finally:
+        install_checks.check_ffmpeg_installed = check_ffmpeg
     seconds = time.time() - t0
     frames = sorted(p.name for p in out.glob("*") if p.is_file())
     if len(frames) != len(times):
