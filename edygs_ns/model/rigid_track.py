@@ -243,10 +243,9 @@ def track_rigid(
         outlines[i] = evidence[i] * near
         regions[i] = dilate(outlines[i] > 0.5, dilation)
 
-    def render_loss(i: int, rotvec: Tensor, unit: Tensor, target: Tensor) -> Tensor:
+    def render_loss(i: int, rotvec: Tensor, unit: Tensor, target: Tensor, win: Window) -> Tensor:
         """Fit loss of latent i (RGB ``target`` [H, W, 3]) for the transform (rotvec, unit),
-        rendered only in the window around its loss region."""
-        win = window(i)
+        rendered only in ``win``, the window around its loss region (``window(i)``)."""
         y0, y1, x0, x1 = win
         region, outline = regions[i, y0:y1, x0:x1], outlines[i, y0:y1, x0:x1]
         moved = rigid_apply(points, centre, rotation_matrices(rotvec[None]), (unit * size)[None])[0]
@@ -280,9 +279,9 @@ def track_rigid(
             optimizer = torch.optim.Adam(
                 [{"params": [rotvec], "lr": config.lr_rotation}, {"params": [unit], "lr": config.lr_translation}]
             )
-            target = latent(i)  # once per latent, not per step
+            target, win = latent(i), window(i)  # once per latent, not per step (window reads the host)
             for _ in range(config.steps):
-                loss = render_loss(i, rotvec, unit, target)
+                loss = render_loss(i, rotvec, unit, target, win)
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
@@ -292,7 +291,7 @@ def track_rigid(
     iou = torch.full((n,), float("nan"), device=device)
     with torch.no_grad():
         for i in range(n):
-            losses[i] = render_loss(i, rotvecs[i], units[i], latent(i)) if bool(regions[i].any()) else 0.0
+            losses[i] = render_loss(i, rotvecs[i], units[i], latent(i), window(i)) if bool(regions[i].any()) else 0.0
             turn = outline_turn(i, rotvecs[i])
             shape = silhouette(i, turn, units[i]) > 0.5
             footprints[i] = dilate(shape, dilation)
