@@ -6,7 +6,7 @@
 #         kernels compiled ahead for the device's Python, torch and GPU arch (the slow part: about
 #         30-50 min on 2 cores; reused while Python, torch and arch stay the same), installed into one
 #         folder and packed as OUT/site.tar.xz with OUT/bundle.json saying what it was made for.
-#   use   on the device machine: unpack into /tmp/edygs_site; prints the export to eval.
+#   use   on the device machine: unpack into /tmp/edygs_site (or $EDYGS_SITE); prints the export to eval.
 # Usage:
 #   bash scripts/gpu_bundle.sh make [--python 3.12] [--torch 2.11.0] [--arch 9.0] [--out .gpu]
 #   eval "$(bash scripts/gpu_bundle.sh use [--out .gpu])"
@@ -25,10 +25,10 @@ while [ $# -gt 0 ]; do
 done
 
 if [ "$mode" = use ]; then
-  site=/tmp/edygs_site
+  site="${EDYGS_SITE:-/tmp/edygs_site}"
   [ -f "$out/site.tar.xz" ] || { echo "gpu_bundle: $out/site.tar.xz: no bundle (run 'gpu_bundle.sh make' on the CPU machine and carry $out)" >&2; exit 1; }
   rm -rf "$site" && mkdir -p "$site" && tar -xJf "$out/site.tar.xz" -C "$site"
-  have="$(python3 -c 'import sys, torch; print("%d.%d" % sys.version_info[:2], torch.__version__.split("+")[0])')"
+  have="$(python3 -c 'import sys, torch; print("%d.%d" % sys.version_info[:2], torch.__version__.split("+")[0])' 2>/dev/null || echo "no torch")"
   want="$(python3 -c 'import json, sys; b = json.load(open(sys.argv[1])); print(b["python"], b["torch"])' "$out/bundle.json")"
   [ "$have" = "$want" ] || echo "gpu_bundle: warning: bundle made for python/torch $want, this machine has $have; gsplat's kernels will not load" >&2
   echo "export PYTHONPATH=$repo:$site${PYTHONPATH:+:$PYTHONPATH}"
