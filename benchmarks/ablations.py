@@ -188,7 +188,8 @@ def row_of(metrics: Dict[str, Any], label: str, seconds: float) -> Dict[str, Any
     row: Dict[str, Any] = {"train_seconds": seconds}
     for split, prefix in ((INPUT_SPLIT, "input"), (NOVEL_SPLIT, "novel"), (NOVEL_UNFITTED_SPLIT, "novel_nofit"),
                           (NOVEL_ANCHORED_SPLIT, "novel_anchor")):
-        for key in ("psnr", "ssim", "lpips_alex", "mask_iou", "mask_mean", "psnr_dynamic", "psnr_static", "psnr_covisible"):
+        for key in ("psnr", "ssim", "lpips_alex", "mask_iou", "mask_mean", "psnr_dynamic", "psnr_static", "psnr_covisible",
+                    "psnr_unseen", "unseen_error_share"):
             value = _mean(splits.get(split, {}).get(key))
             row[f"{prefix}_{key}"] = value if isinstance(value, (int, float)) else None
     for split, prefix in (("poses (initial)", "ate_initial"), ("poses (refined)", "ate_refined")):

@@ -312,6 +312,7 @@ COLUMNS: Tuple[Tuple[str, str, int], ...] = (
     ("novel PSNR (no fit)↑", "novel_nofit_psnr", 2),
     ("novel SSIM (no fit)↑", "novel_nofit_ssim", 4),
     ("novel PSNR seen (no fit)↑", "novel_nofit_psnr_covisible", 2),
+    ("novel error share unseen (no fit)", "novel_nofit_unseen_error_share", 2),
     ("novel PSNR (anchored)↑", "novel_anchor_psnr", 2),
     ("novel PSNR seen (anchored)↑", "novel_anchor_psnr_covisible", 2),
     ("mask IoU↑", "input_mask_iou", 3),

@@ -287,3 +287,20 @@ def test_region_psnr_splits_the_error_by_the_true_mask():
     assert values["psnr_dynamic"] == pytest.approx(20.0, abs=1e-3) and values["psnr_static"] == pytest.approx(40.0, abs=1e-3)
     assert region_psnr(pred, gt, None) == {}
     assert set(region_psnr(pred, gt, torch.zeros(8, 8, dtype=torch.bool))) == {"psnr_static"}
+
+
+def test_covisibility_scores_split_the_error_by_what_training_saw():
+    from edygs_ns.eval.evaluate import covisibility_scores
+
+    gt = torch.full((10, 10, 3), 0.5)
+    pred = gt.clone()
+    seen = torch.ones(10, 10, dtype=torch.bool)
+    seen[:, :2] = False  # 20 % of the pixels never seen
+    pred[:, :2] += 0.1  # MSE 0.01 on the unseen pixels
+    pred[:, 2:] += 0.01  # MSE 1e-4 on the seen ones
+    values = covisibility_scores(pred, gt, seen)
+    assert values["psnr_unseen"] == pytest.approx(20.0, abs=1e-3) and values["psnr_covisible"] == pytest.approx(40.0, abs=1e-3)
+    # 20 px x 0.01 against 80 px x 1e-4: the unseen fifth carries 0.2 / 0.208 of the error
+    assert values["unseen_error_share"] == pytest.approx(0.2 / 0.208, rel=1e-4)
+    everything = covisibility_scores(pred, gt, torch.ones(10, 10, dtype=torch.bool))
+    assert set(everything) == {"psnr_covisible"}

@@ -130,7 +130,7 @@ def test_write_metrics_json_and_markdown(tmp_path):
     lines = md_path.read_text(encoding="utf-8").splitlines()
     table = [line for line in lines if line.startswith("|")]
     header = [cell.strip() for cell in table[0].strip("|").split("|")]
-    assert header == ["Method", "Split", "PSNR↑", "SSIM↑", "PSNR dyn↑", "PSNR static↑", "PSNR seen↑", "LPIPS(alex)↓", "LPIPS(vgg)↓",
+    assert header == ["Method", "Split", "PSNR↑", "SSIM↑", "PSNR dyn↑", "PSNR static↑", "PSNR seen↑", "PSNR unseen↑", "error share unseen", "LPIPS(alex)↓", "LPIPS(vgg)↓",
                       "mask IoU↑", "ATE↓", "RPE_t↓", "RPE_r↓"]  # fmt: skip
     rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in table[2:]]
     assert len(rows) == 3

@@ -92,6 +92,9 @@ IMAGE_METRIC_KEYS: Tuple[str, ...] = ("psnr", "ssim", "lpips_alex", "lpips_vgg",
 REGION_PSNR_KEYS: Tuple[str, ...] = ("psnr_dynamic", "psnr_static")
 #: Novel views: PSNR over the pixels some training latent saw (simulator scenes; sim/covisibility.py).
 COVISIBLE_PSNR_KEY = "psnr_covisible"
+#: Novel views: PSNR over the pixels no training latent saw, and their share of the view's squared error.
+UNSEEN_PSNR_KEY = "psnr_unseen"
+UNSEEN_ERROR_SHARE_KEY = "unseen_error_share"
 #: LPIPS backbones reported (metric key "lpips_<net>").
 LPIPS_NETS: Tuple[str, ...] = ("alex", "vgg")
 #: Columns of the per-view grids.
@@ -384,6 +387,29 @@ def region_psnr(pred: Tensor, gt: Tensor, dynamic: Optional[Tensor]) -> Dict[str
     return out
 
 
+def covisibility_scores(pred: Tensor, gt: Tensor, seen: Tensor) -> Dict[str, float]:
+    """Scores split by co-visibility: PSNR over the seen and the unseen pixels, and the unseen
+    pixels' share of the view's summed squared error (0-1; what no training view could teach).
+
+    Args:
+        pred, gt: [H, W, 3] images in [0, 1].
+        seen: [H, W] bool, true where some training latent saw the surface.
+
+    Returns:
+        COVISIBLE_PSNR_KEY, UNSEEN_PSNR_KEY, UNSEEN_ERROR_SHARE_KEY; a region without pixels is left out.
+    """
+    seen = seen.to(pred.device).bool()
+    out: Dict[str, float] = {}
+    if bool(seen.any()):
+        out[COVISIBLE_PSNR_KEY] = psnr(pred, gt, mask=seen)
+    if bool((~seen).any()):
+        out[UNSEEN_PSNR_KEY] = psnr(pred, gt, mask=~seen)
+        error = ((pred.float() - gt.float()) ** 2).sum(dim=-1)
+        total = float(error.sum())
+        out[UNSEEN_ERROR_SHARE_KEY] = float(error[~seen].sum()) / total if total > 0 else 0.0
+    return out
+
+
 def _score_reference(
     files: Optional[List[Path]], index: int, gt: Tensor, into: MetricSet, dynamic: Optional[Tensor] = None
 ) -> Optional[Tensor]:
@@ -440,9 +466,7 @@ def evaluate_group(
                     if mask is not None:
                         values["mask_iou"] = mask_iou(mask[..., 0].detach().cpu(), gt_mask, MASK_THRESHOLD)
                 if group.gt_covisible is not None:
-                    seen = _read_covisible(group.gt_covisible[i]).to(pred.device)
-                    if bool(seen.any()):
-                        values[COVISIBLE_PSNR_KEY] = psnr(pred, gt, mask=seen)
+                    values.update(covisibility_scores(pred, gt, _read_covisible(group.gt_covisible[i])))
                 if mask is not None:
                     values["mask_mean"] = float(mask.detach().float().mean())
                 ours.update(values)

@@ -27,6 +27,8 @@ COLUMNS: Tuple[Tuple[str, str, str], ...] = (
     ("psnr_dynamic", "PSNR dyn↑", ".2f"),
     ("psnr_static", "PSNR static↑", ".2f"),
     ("psnr_covisible", "PSNR seen↑", ".2f"),
+    ("psnr_unseen", "PSNR unseen↑", ".2f"),
+    ("unseen_error_share", "error share unseen", ".2f"),
     ("lpips_alex", "LPIPS(alex)↓", ".4f"),
     ("lpips_vgg", "LPIPS(vgg)↓", ".4f"),
     ("mask_iou", "mask IoU↑", ".4f"),
