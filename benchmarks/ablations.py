@@ -36,7 +36,8 @@ import tyro
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from edygs_ns.configs.run_length import run_length_args
-from edygs_ns.eval.evaluate import INPUT_SPLIT, NOVEL_ANCHORED_SPLIT, NOVEL_SPLIT, NOVEL_UNFITTED_SPLIT, evaluate_run
+from edygs_ns.eval.evaluate import (COVISIBILITY_KEYS, INPUT_SPLIT, NOVEL_ANCHORED_SPLIT, NOVEL_SPLIT, NOVEL_UNFITTED_SPLIT,
+                                   REGION_PSNR_KEYS, evaluate_run)
 from edygs_ns.preprocess.pipeline import ProcessConfig, process
 from edygs_ns.sim.writer import SynthConfig, write_synthetic_scene
 
@@ -188,8 +189,7 @@ def row_of(metrics: Dict[str, Any], label: str, seconds: float) -> Dict[str, Any
     row: Dict[str, Any] = {"train_seconds": seconds}
     for split, prefix in ((INPUT_SPLIT, "input"), (NOVEL_SPLIT, "novel"), (NOVEL_UNFITTED_SPLIT, "novel_nofit"),
                           (NOVEL_ANCHORED_SPLIT, "novel_anchor")):
-        for key in ("psnr", "ssim", "lpips_alex", "mask_iou", "mask_mean", "psnr_dynamic", "psnr_static", "psnr_covisible",
-                    "psnr_unseen", "unseen_error_share"):
+        for key in ("psnr", "ssim", "lpips_alex", "mask_iou", "mask_mean", *REGION_PSNR_KEYS, *COVISIBILITY_KEYS):
             value = _mean(splits.get(split, {}).get(key))
             row[f"{prefix}_{key}"] = value if isinstance(value, (int, float)) else None
     for split, prefix in (("poses (initial)", "ate_initial"), ("poses (refined)", "ate_refined")):

@@ -95,6 +95,7 @@ COVISIBLE_PSNR_KEY = "psnr_covisible"
 #: Novel views: PSNR over the pixels no training latent saw, and their share of the view's squared error.
 UNSEEN_PSNR_KEY = "psnr_unseen"
 UNSEEN_ERROR_SHARE_KEY = "unseen_error_share"
+COVISIBILITY_KEYS: Tuple[str, ...] = (COVISIBLE_PSNR_KEY, UNSEEN_PSNR_KEY, UNSEEN_ERROR_SHARE_KEY)
 #: LPIPS backbones reported (metric key "lpips_<net>").
 LPIPS_NETS: Tuple[str, ...] = ("alex", "vgg")
 #: Columns of the per-view grids.
@@ -396,7 +397,7 @@ def covisibility_scores(pred: Tensor, gt: Tensor, seen: Tensor) -> Dict[str, flo
         seen: [H, W] bool, true where some training latent saw the surface.
 
     Returns:
-        COVISIBLE_PSNR_KEY, UNSEEN_PSNR_KEY, UNSEEN_ERROR_SHARE_KEY; a region without pixels is left out.
+        The COVISIBILITY_KEYS values; a region without pixels is left out.
     """
     seen = seen.to(pred.device).bool()
     out: Dict[str, float] = {}
