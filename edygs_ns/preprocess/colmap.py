@@ -11,7 +11,9 @@ order (``NNNN_J.png``), which is the order COLMAP's sequential matcher pairs the
 
 COLMAP's poses are world-to-camera in OpenCV axes (x right, y down, z forward); the result
 holds camera-to-world in OpenGL axes (x right, y up, z back), the layout's convention, with
-the sparse points in the same world frame. Only the largest reconstruction is kept.
+the sparse points in the same world frame. Only the largest reconstruction is kept; the mover test
+(``colmap_movers``) may then replace it by a map made without a group of points that moves with an
+object.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import numpy as np
 
 from edygs_ns.geometry import Intrinsics, colmap_w2c_to_c2w_opengl
 from edygs_ns.io.images import image_size
+from edygs_ns.preprocess.colmap_movers import MoverTest, largest_model, remap_without_movers
 from edygs_ns.preprocess.steps import progress_bar
 
 #: glog level of COLMAP's own log lines shown (0 info, 1 warning, 2 error).
@@ -47,6 +50,8 @@ MAX_UPSAMPLE = 4
 PIXEL_PARAMS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "OPENCV": 4}
 #: Folder of the upsampled latents inside the COLMAP work folder.
 UPSAMPLED_DIR = "upsampled"
+#: Scratch folder of the mover test inside the COLMAP work folder.
+MOVER_TEST_DIR = "mover_test"
 
 
 @dataclass
@@ -98,6 +103,13 @@ class ColmapConfig:
     feature_resolution: int = 512
     """COLMAP sees the latents upsampled by the smallest whole factor (at most 4) that brings their
     longer side to this many pixels: SIFT places features on tiny frames coarsely. 0: no upsampling."""
+    mover_clusters: int = 5
+    """Mover test: re-map without each k-means cluster (K = 2 .. this) of the map's points, so that a large
+    moving object cannot carry the frame along (edygs_ns.preprocess.colmap_movers). 0 or 1: no test."""
+    mover_error_ratio: float = 0.85
+    """Mover test: a re-map replaces the map when its mean reprojection error is at most this times the map's."""
+    mover_margin_px: float = 2.0
+    """Mover test: a cluster's image footprint (hull of its observations) is widened by this (latent pixels)."""
 
 
 def with_calibration(config: ColmapConfig, intrinsics: Any) -> Tuple[ColmapConfig, str]:
@@ -165,6 +177,8 @@ class ColmapResult:
         points_rgb: [P, 3] uint8 their colours.
         mean_reprojection_error: mean reprojection error in pixels (NaN without points).
         num_reconstructions: models COLMAP built (only the largest is kept).
+        mover_test: the mover test's outcome (colmap_movers.MoverTest.as_dict, plus its "message");
+            None when it did not run.
     """
 
     names: List[str]
@@ -175,6 +189,7 @@ class ColmapResult:
     points_rgb: np.ndarray
     mean_reprojection_error: float
     num_reconstructions: int
+    mover_test: Optional[Dict[str, Any]] = None
 
     @property
     def num_registered(self) -> int:
@@ -194,6 +209,7 @@ class ColmapResult:
             "camera": asdict(self.camera) if self.camera is not None else None,
             "mean_reprojection_error": self.mean_reprojection_error,
             "num_reconstructions": self.num_reconstructions,
+            "mover_test": self.mover_test,
         }
         (folder / RESULT_JSON).write_text(json.dumps(meta, indent=2))
 
@@ -211,6 +227,7 @@ class ColmapResult:
                 points_rgb=arrays["points_rgb"],
                 mean_reprojection_error=float(meta["mean_reprojection_error"]),
                 num_reconstructions=int(meta["num_reconstructions"]),
+                mover_test=meta.get("mover_test"),
             )
 
 
@@ -296,7 +313,7 @@ def _match(database: Path, config: ColmapConfig) -> None:
         pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
 
 
-def _map(database: Path, image_dir: Path, sparse_dir: Path, n_images: int, config: ColmapConfig) -> Dict[int, "object"]:
+def _mapper_options(config: ColmapConfig) -> "object":
     import pycolmap
 
     options = pycolmap.IncrementalPipelineOptions()
@@ -310,6 +327,13 @@ def _map(database: Path, image_dir: Path, sparse_dir: Path, n_images: int, confi
     options.mapper.abs_pose_refine_extra_params = config.refine_focal_length
     options.mapper.init_min_num_inliers = config.init_min_num_inliers
     options.mapper.abs_pose_min_num_inliers = config.abs_pose_min_num_inliers
+    return options
+
+
+def _map(database: Path, image_dir: Path, sparse_dir: Path, n_images: int, config: ColmapConfig) -> Dict[int, "object"]:
+    import pycolmap
+
+    options = _mapper_options(config)
     sparse_dir.mkdir(parents=True, exist_ok=True)
     with progress_bar("COLMAP: incremental mapping (images registered)", n_images) as advance:
         return pycolmap.incremental_mapping(
@@ -345,6 +369,11 @@ def run_colmap(image_dir: Path, names: Sequence[str], work_dir: Path, config: Co
     _extract(database, image_dir, names, config)
     _match(database, config)
     models = _map(database, image_dir, work_dir / "sparse", len(names), config)
+    model = largest_model(models)
+    mover_test = None
+    if model is not None and config.mover_clusters >= 2:
+        model, outcome = _mover_test(database, image_dir, work_dir, model, config, factor)
+        mover_test = {**outcome.as_dict(), "message": outcome.message()}
     if factor > 1:
         shutil.rmtree(image_dir, ignore_errors=True)
 
@@ -352,9 +381,8 @@ def run_colmap(image_dir: Path, names: Sequence[str], work_dir: Path, config: Co
     c2w = np.full((n, 4, 4), np.nan)
     registered = np.zeros(n, dtype=bool)
     empty = ColmapResult(list(names), c2w, registered, None, np.zeros((0, 3)), np.zeros((0, 3), np.uint8), float("nan"), len(models))
-    if not models:
+    if model is None:
         return empty
-    model = max(models.values(), key=lambda r: r.num_reg_images())
     index = {name: i for i, name in enumerate(names)}
     for image in model.images.values():
         if image.name in index and image.has_pose:
@@ -374,7 +402,25 @@ def run_colmap(image_dir: Path, names: Sequence[str], work_dir: Path, config: Co
         points_rgb=rgb,
         mean_reprojection_error=float(model.compute_mean_reprojection_error()) / factor,
         num_reconstructions=len(models),
+        mover_test=mover_test,
     )
+
+
+def _mover_test(database: Path, image_dir: Path, work_dir: Path, model: "object", config: ColmapConfig,
+                factor: int) -> Tuple["object", MoverTest]:
+    """The mover test (colmap_movers) on the first map, mapping quietly with the same options."""
+    import pycolmap
+
+    def remap(candidate_db: Path, sparse_dir: Path) -> Dict[int, "object"]:
+        sparse_dir.mkdir(parents=True, exist_ok=True)
+        return pycolmap.incremental_mapping(candidate_db, image_dir, sparse_dir, _mapper_options(config))
+
+    total = sum(range(2, config.mover_clusters + 1))
+    with progress_bar("COLMAP: mover test (maps without a cluster of points)", total) as advance:
+        model, outcome = remap_without_movers(database, model, work_dir / MOVER_TEST_DIR, remap, config.mover_clusters,
+                                              config.mover_error_ratio, config.mover_margin_px * factor, advance)
+    # errors in latent pixels, like the result's
+    return model, replace(outcome, error_before=outcome.error_before / factor, best_error=outcome.best_error / factor)
 
 
 def registration_message(result: ColmapResult, min_fraction: float, shown: int) -> str:

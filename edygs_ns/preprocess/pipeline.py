@@ -337,8 +337,9 @@ class Pipeline:
             if jumps:
                 CONSOLE.print(jumps, soft_wrap=True, markup=False)
             error = f"{result.mean_reprojection_error:.3f} px" if np.isfinite(result.mean_reprojection_error) else "n/a"
+            movers = f"; {result.mover_test['message']}" if result.mover_test else ""
             return (f"COLMAP registered {result.num_registered}/{len(names)} latents, {len(result.points_xyz):,} points, "
-                    f"mean reprojection error {error}, {result.num_reconstructions} model(s); camera: {camera}")
+                    f"mean reprojection error {error}, {result.num_reconstructions} model(s); camera: {camera}{movers}")
         meta = self.capture_meta()
         with np.load(self.work / GIVEN_POSES_NPZ) as data:
             c2w = data["c2w"].reshape(-1, 4, 4)
@@ -417,6 +418,7 @@ class Pipeline:
             "unregistered_latents": result.unregistered_names,
             "mean_reprojection_error_px": float(error) if np.isfinite(error) else None,
             "num_reconstructions": result.num_reconstructions,
+            "mover_test": result.mover_test,
             "path_jumps": registered_path_notice(result.c2w, result.registered, result.names) or None,
             "camera": asdict(result.camera) if result.camera is not None else None,
             "camera_setting": self.colmap_settings()[1],
