@@ -79,9 +79,48 @@ def test_filtered_database_drops_only_matches_on_the_footprint(tmp_path: Path) -
 
 
 def test_mover_test_message_says_what_it_did() -> None:
-    kept = MoverTest(14, 0.33, 0.26, 1900, 3967, True, 0.85)
+    kept = MoverTest(14, 0.33, 0.26, 1900, 3967, True, 0.83, 1.25, 1.15)
     assert "1,900 of 3,967 points (48%)" in kept.message() and "0.330 -> 0.260 px" in kept.message()
+    assert "tracks x1.25 longer" in kept.message()
     assert kept.as_dict()["kept"] is True
-    stayed = MoverTest(14, 0.27, 0.26, 400, 2672, False, 0.85)
+    stayed = MoverTest(14, 0.27, 0.26, 400, 2672, False, 0.83, 0.97, 1.15)
     assert stayed.message().startswith("mover test: no group") and "14 clusters" in stayed.message()
     assert "skipped" in MoverTest(0, 0.27, float("nan"), 0, 2, False, 0.85).message()
+
+
+def test_a_large_mover_no_longer_carries_colmaps_path(tmp_path: Path) -> None:
+    """edygs-synth's `large` preset (a textured ellipsoid on about a third of the image): COLMAP alone
+    follows it, the mover test finds it among the points and re-maps without it."""
+    import json
+    from dataclasses import replace
+
+    from edygs_ns.eval.trajectory import ate_rmse
+    from edygs_ns.events.edi import EdiConfig
+    from edygs_ns.preprocess.colmap import ColmapConfig
+    from edygs_ns.preprocess.inputs import InputConfig
+    from edygs_ns.preprocess.pipeline import ProcessConfig, process
+    from edygs_ns.sim.writer import SynthConfig, write_synthetic_scene
+
+    raw = write_synthetic_scene(SynthConfig(output_dir=tmp_path / "raw", preset="large", width=160, height=120,
+                                            n_frames=6, k=3, supersample=1, sim_steps_per_exposure=8,
+                                            n_subframes=5, novel_stride=3))
+    truth = {(f["blurry_index"], f["latent_index"]): f["transform_matrix"]
+             for f in json.loads((raw / "gt" / "transforms.json").read_text())["frames"]}
+    diameter = json.loads((raw / "scene.json").read_text())["camera_path_diameter"]
+    ate, reports = {}, {}
+    for name, clusters in (("without", 0), ("with", ColmapConfig().mover_clusters)):
+        config = ProcessConfig(output=tmp_path / name, inputs=InputConfig(exposures=raw / "exposures.csv",
+                                                                        events=raw / "events.h5"),
+                               edi=EdiConfig(k=3), colmap=ColmapConfig(mover_clusters=clusters))
+        reports[name] = process(config)
+        frames = json.loads((tmp_path / name / "transforms.json").read_text())["frames"]
+        estimate = np.array([f["transform_matrix"] for f in frames])
+        gt = np.array([truth[(f["blurry_index"], f["latent_index"])] for f in frames])
+        ate[name] = ate_rmse(estimate, gt) / diameter
+    assert reports["without"]["mover_test"] is None
+    test = reports["with"]["mover_test"]
+    assert test["kept"] and test["best_error_px"] < test["error_ratio_needed"] * test["error_before_px"]
+    assert test["track_gain"] >= test["track_gain_needed"]
+    assert 0.2 < test["best_cluster_points"] / test["points"] < 0.8, "a cluster, not the whole map"
+    assert ate["without"] > 0.04, f"COLMAP alone should follow the mover here: ATE {ate['without']:.3f} of the path"
+    assert ate["with"] < 0.5 * ate["without"] and ate["with"] < 0.025, ate

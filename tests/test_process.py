@@ -108,6 +108,7 @@ def test_form_b_colmap_registers_and_poses_match_ground_truth(raw: Path, tmp_pat
     assert meta["pose_source"] == "colmap"
     assert report["registered_latents"] == report["total_latents"] == 18 and report["unregistered_latents"] == []
     assert report["mean_reprojection_error_px"] < 1.0 and report["num_points"] > 0
+    assert report["mover_test"]["candidates"] > 0 and not report["mover_test"]["kept"], "a small sphere carries no frame"
     est = np.array([f["transform_matrix"] for f in meta["frames"]])
     gt = _gt_poses(raw, meta["frames"])
     path_diameter = json.loads((raw / "scene.json").read_text())["camera_path_diameter"]

@@ -106,8 +106,10 @@ class ColmapConfig:
     mover_clusters: int = 5
     """Mover test: re-map without each k-means cluster (K = 2 .. this) of the map's points, so that a large
     moving object cannot carry the frame along (edygs_ns.preprocess.colmap_movers). 0 or 1: no test."""
-    mover_error_ratio: float = 0.85
-    """Mover test: a re-map replaces the map when its mean reprojection error is at most this times the map's."""
+    mover_error_ratio: float = 0.83
+    """Mover test: a re-map replaces the map when its mean reprojection error is at most this times the map's ..."""
+    mover_track_ratio: float = 1.15
+    """... and its mean track length at least this times the map's (of such re-maps, the one with the most points)."""
     mover_margin_px: float = 2.0
     """Mover test: a cluster's image footprint (hull of its observations) is widened by this (latent pixels)."""
 
@@ -418,7 +420,8 @@ def _mover_test(database: Path, image_dir: Path, work_dir: Path, model: "object"
     total = sum(range(2, config.mover_clusters + 1))
     with progress_bar("COLMAP: mover test (maps without a cluster of points)", total) as advance:
         model, outcome = remap_without_movers(database, model, work_dir / MOVER_TEST_DIR, remap, config.mover_clusters,
-                                              config.mover_error_ratio, config.mover_margin_px * factor, advance)
+                                              config.mover_error_ratio, config.mover_track_ratio,
+                                              config.mover_margin_px * factor, advance)
     # errors in latent pixels, like the result's
     return model, replace(outcome, error_before=outcome.error_before / factor, best_error=outcome.best_error / factor)
 

@@ -12,7 +12,10 @@ The test: the first map's 3-D points are clustered by k-means for K = 2 .. ``max
 cluster is a candidate mover. For each, a copy of the database loses the verified matches whose
 keypoint lies on the cluster's footprint in that image (the convex hull of its observations,
 widened by ``margin_px``), and is mapped again. A candidate's map passes when its mean reprojection
-error is at most ``error_ratio`` times the first map's and it registers as many images; of those
+error is at most ``error_ratio`` times the first map's, its mean track length at least
+``track_ratio`` times the first map's (a consistent scene keeps its features tracked longer; a
+cluster of the room that merely holds the noisiest points lowers the error, not the tracks'
+length), and it registers as many images; of those
 that pass, the map with the most points is kept (it explains the most of the scene: on ``large``
 the loosest cluster, two thirds of all points, passes too but drops much of the room with the
 mover). Otherwise the first map stands. Features and matches are not recomputed.
@@ -46,6 +49,8 @@ class MoverTest:
         total_points: points of the first map.
         kept: whether the candidate's map replaced the first one.
         ratio_needed: the error ratio a candidate had to reach.
+        track_gain: the kept (else the lowest-error) candidate's mean track length over the first map's.
+        track_gain_needed: the track-length ratio a candidate had to reach.
     """
 
     candidates: int
@@ -55,6 +60,8 @@ class MoverTest:
     total_points: int
     kept: bool
     ratio_needed: float
+    track_gain: float = float("nan")
+    track_gain_needed: float = 1.0
 
     @property
     def best_ratio(self) -> float:
@@ -68,15 +75,18 @@ class MoverTest:
         if self.kept:
             return (f"mover test: {self.best_points:,} of {self.total_points:,} points ({share:.0%}) move with an object; "
                     f"re-mapped without them, reprojection error {self.error_before:.3f} -> {self.best_error:.3f} px "
-                    f"(x{self.best_ratio:.2f}, needed <= x{self.ratio_needed:.2f})")
+                    f"(x{self.best_ratio:.2f}, needed <= x{self.ratio_needed:.2f}), tracks x{self.track_gain:.2f} longer")
         return (f"mover test: no group of points moves with an object ({self.candidates} clusters tried, best error "
-                f"x{self.best_ratio:.2f} of {self.error_before:.3f} px, needed <= x{self.ratio_needed:.2f})")
+                f"x{self.best_ratio:.2f} of {self.error_before:.3f} px with tracks x{self.track_gain:.2f}; needed <= "
+                f"x{self.ratio_needed:.2f} with tracks >= x{self.track_gain_needed:.2f})")
 
     def as_dict(self) -> Dict[str, Any]:
         return {"candidates": self.candidates, "error_before_px": self.error_before,
                 "best_error_px": None if not np.isfinite(self.best_error) else self.best_error,
                 "best_cluster_points": self.best_points, "points": self.total_points, "kept": self.kept,
-                "error_ratio_needed": self.ratio_needed}
+                "error_ratio_needed": self.ratio_needed,
+                "track_gain": None if not np.isfinite(self.track_gain) else self.track_gain,
+                "track_gain_needed": self.track_gain_needed}
 
 
 def point_clusters(xyz: np.ndarray, max_clusters: int, seed: int = 0) -> List[np.ndarray]:
@@ -169,8 +179,8 @@ def largest_model(models: Dict[int, Any]) -> Optional[Any]:
 
 
 def remap_without_movers(database: Path, model: Any, work: Path, remap: Callable[[Path, Path], Dict[int, Any]],
-                    max_clusters: int, error_ratio: float, margin_px: float,
-                    advance: Callable[[], None] = lambda: None) -> Tuple[Any, MoverTest]:
+                         max_clusters: int, error_ratio: float, track_ratio: float, margin_px: float,
+                         advance: Callable[[], None] = lambda: None) -> Tuple[Any, MoverTest]:
     """Run the mover test on ``model`` (a pycolmap Reconstruction mapped from ``database``).
 
     Args:
@@ -179,7 +189,8 @@ def remap_without_movers(database: Path, model: Any, work: Path, remap: Callable
         work: scratch folder (replaced; removed afterwards).
         remap: maps a database into a sparse folder, returning COLMAP's models.
         max_clusters: k-means runs for K = 2 .. max_clusters.
-        error_ratio: a candidate's map is kept at most at this times the first map's error.
+        error_ratio: a candidate's map passes at most at this times the first map's error ...
+        track_ratio: ... and with tracks at least this times as long on average.
         margin_px: footprint margin, pixels of the images COLMAP saw.
         advance: called once per candidate (progress).
 
@@ -191,6 +202,7 @@ def remap_without_movers(database: Path, model: Any, work: Path, remap: Callable
     point_ids = np.array(sorted(model.points3D.keys()), dtype=np.int64)
     xyz = np.array([model.points3D[int(p)].xyz for p in point_ids]).reshape(-1, 3)
     error_before = float(model.compute_mean_reprojection_error())
+    tracks_before = float(model.compute_mean_track_length())
     clusters = point_clusters(xyz, max_clusters)
     camera = next(iter(model.cameras.values()))
     size = (int(camera.width), int(camera.height))
@@ -202,8 +214,8 @@ def remap_without_movers(database: Path, model: Any, work: Path, remap: Callable
         source.close()
     if work.exists():
         shutil.rmtree(work)
-    lowest: Tuple[float, int] = (float("inf"), 0)
-    kept: Optional[Tuple[float, int, Any]] = None
+    lowest: Tuple[float, int, float] = (float("inf"), 0, float("nan"))
+    kept: Optional[Tuple[float, int, float, Any]] = None
     try:
         for index, members in enumerate(clusters):
             folder = work / f"candidate_{index:02d}"
@@ -214,12 +226,14 @@ def remap_without_movers(database: Path, model: Any, work: Path, remap: Callable
             if candidate is None or candidate.num_reg_images() < model.num_reg_images() or candidate.num_points3D() == 0:
                 continue
             error = float(candidate.compute_mean_reprojection_error())
-            lowest = min(lowest, (error, len(members)))
-            if error <= error_ratio * error_before and (kept is None or candidate.num_points3D() > kept[2].num_points3D()):
-                kept = (error, len(members), candidate)
+            gain = float(candidate.compute_mean_track_length()) / max(tracks_before, 1e-12)
+            lowest = min(lowest, (error, len(members), gain))
+            passes = error <= error_ratio * error_before and gain >= track_ratio
+            if passes and (kept is None or candidate.num_points3D() > kept[3].num_points3D()):
+                kept = (error, len(members), gain, candidate)
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    error, size = (kept[0], kept[1]) if kept is not None else lowest
+    error, size, gain = kept[:3] if kept is not None else lowest
     outcome = MoverTest(len(clusters), error_before, error if np.isfinite(error) else float("nan"), size,
-                        len(point_ids), kept is not None, error_ratio)
-    return (kept[2] if kept is not None else model), outcome
+                        len(point_ids), kept is not None, error_ratio, gain, track_ratio)
+    return (kept[3] if kept is not None else model), outcome
