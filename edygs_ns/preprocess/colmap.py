@@ -413,9 +413,11 @@ def _mover_test(database: Path, image_dir: Path, work_dir: Path, model: "object"
     """The mover test (colmap_movers) on the first map, mapping quietly with the same options."""
     import pycolmap
 
+    options = _mapper_options(config)
+
     def remap(candidate_db: Path, sparse_dir: Path) -> Dict[int, "object"]:
         sparse_dir.mkdir(parents=True, exist_ok=True)
-        return pycolmap.incremental_mapping(candidate_db, image_dir, sparse_dir, _mapper_options(config))
+        return pycolmap.incremental_mapping(candidate_db, image_dir, sparse_dir, options)
 
     total = sum(range(2, config.mover_clusters + 1))
     with progress_bar("COLMAP: mover test (maps without a cluster of points)", total) as advance:

@@ -118,8 +118,7 @@ def footprint(xy: np.ndarray, size: Tuple[int, int], margin_px: float) -> np.nda
     """[H, W] bool: the convex hull of image points ``xy`` [M, 2] (pixels, x right, y down),
     widened by ``margin_px``; empty with fewer than MIN_HULL_POINTS points."""
     from PIL import Image, ImageDraw
-    from scipy.spatial import ConvexHull
-    from scipy.spatial import QhullError
+    from scipy.spatial import ConvexHull, QhullError
 
     width, height = size
     canvas = Image.new("L", (width, height), 0)
@@ -146,7 +145,10 @@ def _dropped_keypoints(model: Any, members: np.ndarray, point_ids: np.ndarray, k
             per_image.setdefault(element.image_id, []).append(np.asarray(image.points2D[element.point2D_idx].xy))
     dropped = {}
     for image_id, kp in keypoints.items():
-        hull = footprint(np.array(per_image.get(image_id, np.zeros((0, 2)))), size, margin_px)
+        if len(per_image.get(image_id, ())) < MIN_HULL_POINTS:  # no footprint in this image
+            dropped[image_id] = np.zeros(len(kp), dtype=bool)
+            continue
+        hull = footprint(np.array(per_image[image_id]), size, margin_px)
         col = np.clip(np.floor(kp[:, 0]).astype(int), 0, size[0] - 1)
         row = np.clip(np.floor(kp[:, 1]).astype(int), 0, size[1] - 1)
         dropped[image_id] = hull[row, col]
