@@ -51,6 +51,21 @@ class GsplatUnavailableError(RuntimeError):
     """gsplat's CUDA kernels are neither built nor buildable here (the message names the fix)."""
 
 
+def require_device(device: object, cuda_available: Optional[Callable[[], bool]] = None) -> None:
+    """Fail at once, in one line naming the fix, when training asks for a CUDA ``device`` that torch
+    does not see (nerfstudio's ``--machine.device-type`` is ``cuda`` unless told otherwise)."""
+    if not str(device).startswith("cuda"):
+        return
+    if cuda_available is None:
+        import torch
+
+        cuda_available = torch.cuda.is_available
+    if not cuda_available():
+        raise RuntimeError(f"training asks for {device} (nerfstudio's default device) but torch sees no CUDA GPU here; "
+                           "on a CPU train with `ns-train edygs-cpu` or add `--machine.device-type cpu` "
+                           "(`edygs-doctor` reports what torch and the toolkit see)")
+
+
 # ----------------------------------------------------------------------------- the toolkit
 
 

@@ -274,3 +274,12 @@ def test_torch_rasteriser_makes_no_tensor_on_the_default_device():
     assert out.render.device.type == "cpu" and torch.equal(out.render, ref.render) and torch.equal(out.depth, ref.depth)
     for k in scene:
         assert torch.equal(grads[k], ref_grads[k]), k
+
+
+def test_require_device_checks_only_cuda_devices():
+    from edygs_ns.cuda_setup import require_device
+
+    require_device("cpu", cuda_available=lambda: False)  # nothing to check
+    require_device("cuda", cuda_available=lambda: True)
+    with pytest.raises(RuntimeError, match="edygs-cpu"):
+        require_device("cuda", cuda_available=lambda: False)

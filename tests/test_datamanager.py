@@ -139,3 +139,13 @@ def test_deleted_event_maps_are_named_not_called_a_raw_capture(scene):
         detect_layout(scene.root)
     with pytest.raises(FileNotFoundError, match=r"event_maps\.npy: event maps"):
         _manager(scene.root)
+
+
+def test_cuda_asked_without_a_gpu_fails_in_one_line(scene):
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA GPU")
+    config = EdygsDataManagerConfig(dataparser=EdygsDataParserConfig(data=scene.root))
+    with pytest.raises(RuntimeError) as caught:
+        config.setup(device="cuda:0", test_mode="val")
+    message = str(caught.value)
+    assert "\n" not in message and "cuda:0" in message and "ns-train edygs-cpu" in message and "--machine.device-type cpu" in message

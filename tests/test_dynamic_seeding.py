@@ -64,6 +64,36 @@ def test_evidence_grows_from_the_contrasted_core_over_the_whole_object():
     assert not hit[:, 18:30, 46:58].any()
 
 
+def _large_mover(level: float) -> tuple:
+    """Half-normal background noise (σ 0.02) and a disc covering a third of each latent, its residual
+    ``level`` over the background and strong (+0.25) only in its centre."""
+    gen = torch.Generator().manual_seed(0)
+    residual = (0.02 * torch.randn(N, H, W, generator=gen)).abs()
+    yy, xx = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    disc = torch.zeros(N, H, W, dtype=torch.bool)
+    for i in range(N):
+        r2 = (xx - 22 - 3 * i) ** 2 + (yy - 24) ** 2
+        disc[i] = r2 < 18**2
+        residual[i][disc[i]] += level
+        residual[i][r2 < 5**2] += 0.25
+    return residual, disc
+
+
+def test_a_large_mover_grows_on_the_background_levels():
+    """A mover over a third of the image inflates the clip's σ_MAD, so the levels taken over all
+    values stop the growth inside it; the background's levels grow it whole. Small movers leave
+    the clip's σ alone and their evidence is the same either way."""
+    residual, disc = _large_mover(0.021)
+    iou = {}
+    for ratio in (0.0, DynamicSeedingConfig().background_sigma_ratio):  # 0: never the background's levels
+        hit = motion_evidence(residual, DynamicSeedingConfig(background_sigma_ratio=ratio))[0].bool()
+        iou[ratio] = float((hit & disc).sum() / (hit | disc).sum())
+    assert iou[0.0] < 0.5 and iou[DynamicSeedingConfig().background_sigma_ratio] > 0.8, iou
+    small, _ = _residuals()
+    assert torch.equal(motion_evidence(small, DynamicSeedingConfig())[0],
+                       motion_evidence(small, DynamicSeedingConfig(background_sigma_ratio=0.0))[0])
+
+
 def test_evidence_rejects_bad_shapes():
     with pytest.raises(ValueError, match=r"\[N, H, W\]"):
         motion_evidence(torch.zeros(H, W), DynamicSeedingConfig())

@@ -35,6 +35,7 @@ from nerfstudio.utils.rich_utils import CONSOLE, get_progress
 from PIL import Image
 from tyro.conf import Suppress
 
+from edygs_ns.cuda_setup import require_device
 from edygs_ns.data.dataparser import EdygsDataParserConfig
 from edygs_ns.io.images import UINT8_MAX
 
@@ -79,6 +80,7 @@ class EdygsDataManager(FullImageDatamanager):
         local_rank: int = 0,
         **kwargs,
     ):
+        require_device(device)
         super().__init__(
             config=config, device=device, test_mode=test_mode, world_size=world_size, local_rank=local_rank, **kwargs
         )

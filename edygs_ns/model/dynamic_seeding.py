@@ -6,7 +6,8 @@ moved. ``model/motion_init.py`` turns that into moving objects with these pieces
 - ``motion_evidence``: per training latent, the static render's colour residual against the EDI
   latent, box-filtered (a moving object is a blob, pose-error residuals are thin edges) and
   thresholded at a robust level over the whole clip, ``median + threshold_mads · 1.4826 · MAD``, and
-  grown into the connected pixels over a lower level (``grow_mads``; hysteresis).
+  grown into the connected pixels over a lower level (``grow_mads``; hysteresis), taken on the
+  background alone when a large mover skews the clip's statistics.
 - ``seed_gaussians``: a moving object has no Gaussian of its own after the static phase (a static
   Gaussian on its path sees it only in a few latents, so the mask regulariser keeps such Gaussians
   static). One evidence region of one latent is back-projected a little in front of the static
@@ -61,6 +62,12 @@ class DynamicSeedingConfig:
     """evidence grows into connected pixels over median + this · σ_MAD"""
     trim_mads: Suppress[float] = 2.5
     """... where the 3 px filtered residual is over its median + this · σ_MAD"""
+    background_mads: Suppress[float] = 3.0
+    """the background's level: median and σ_MAD again over the values under median + this · σ, ..."""
+    background_rounds: Suppress[int] = 5
+    """... this many rounds"""
+    background_sigma_ratio: Suppress[float] = 0.7
+    """grow/trim levels from the background when its σ is under this share of the clip's (a mover big enough to skew it)"""
     reference_time: Suppress[float] = 0.5
     """time of the reference latent, searched first (and the centre of the dynamic time window)"""
     pixel_stride: Suppress[int] = 1
@@ -111,7 +118,7 @@ class DynamicSeedingConfig:
     """a mover strays this many of its radii from its static ray in some latent"""
     still_shift_fraction: Suppress[float] = 0.05
     """... and at least this fraction of the image width"""
-    still_shift_cap: float = 0.1
+    still_shift_cap: float = 0.07
     """... but need not exceed this fraction of the image width"""
     min_presence: Suppress[float] = 0.4
     """a mover's evidence is found in at least this share of the latents"""
@@ -153,6 +160,18 @@ def robust_level(values: Tensor) -> Tuple[float, float]:
     return float(median), MAD_TO_SIGMA * float((flat - median).abs().median())
 
 
+def background_level(values: Tensor, median: float, sigma: float, mads: float, rounds: int) -> Tuple[float, float]:
+    """Median and σ_MAD of the background: taken again over the values under median + ``mads`` σ,
+    ``rounds`` times, from the level (median, sigma) of all values."""
+    flat = values.flatten()
+    for _ in range(rounds):
+        kept = flat[flat <= median + mads * sigma]
+        if kept.numel() == 0:
+            break
+        median, sigma = robust_level(kept)
+    return median, sigma
+
+
 def motion_evidence(
     residual: Float[Tensor, "N H W"], config: DynamicSeedingConfig
 ) -> Tuple[Float[Tensor, "N H W"], float]:
@@ -163,7 +182,9 @@ def motion_evidence(
     ``threshold_mads`` σ are evidence; with hysteresis (``grow_mads`` < ``threshold_mads``) the
     evidence grows into the connected pixels over median + ``grow_mads`` σ, kept where the 3 px
     filtered residual is over its own median + ``trim_mads`` σ (the coarse filter's halo around an
-    object is not the object), with gaps of a few pixels closed and holes filled."""
+    object is not the object), with gaps of a few pixels closed and holes filled. When a mover is
+    big enough to inflate the clip's σ (the background's σ, ``background_level``, under
+    ``background_sigma_ratio`` of it), the grow and trim levels are the background's."""
     if residual.dim() != 3:
         raise ValueError(f"motion_evidence: residual must be [N, H, W], got {tuple(residual.shape)}")
     residual = residual.float()
@@ -173,9 +194,13 @@ def motion_evidence(
     strong = filtered > threshold
     if config.grow_mads >= config.threshold_mads:
         return strong.float(), threshold
-    weak = filtered > min(median + config.grow_mads * sigma, threshold)
     fine = box_filter(residual, FINE_WINDOW)
     fine_median, fine_sigma = robust_level(fine)
+    back_median, back_sigma = background_level(filtered, median, sigma, config.background_mads, config.background_rounds)
+    if back_sigma < config.background_sigma_ratio * sigma:  # a large mover inflates the clip's σ: grow on the background's
+        median, sigma = back_median, back_sigma
+        fine_median, fine_sigma = background_level(fine, fine_median, fine_sigma, config.background_mads, config.background_rounds)
+    weak = filtered > min(median + config.grow_mads * sigma, threshold)
     return grow_regions(strong, weak, fine > fine_median + config.trim_mads * fine_sigma).float(), threshold
 
 
