@@ -36,7 +36,7 @@ def _residuals() -> tuple:
 
 def test_evidence_finds_the_moving_blob_not_the_thin_edge():
     residual, blob = _residuals()
-    evidence, threshold = motion_evidence(residual, DynamicSeedingConfig())
+    evidence, threshold, _ = motion_evidence(residual, DynamicSeedingConfig())
     assert threshold >= DynamicSeedingConfig().min_threshold
     hit = evidence.bool()
     iou = (hit & blob).sum() / (hit | blob).sum()
@@ -56,8 +56,8 @@ def test_evidence_grows_from_the_contrasted_core_over_the_whole_object():
     residual[body] += 0.07  # weak everywhere on the object ...
     residual[:, 21:27, 17:23] += 0.3  # ... strong in its centre
     residual[:, 18:30, 46:58] += 0.04  # a weak patch elsewhere
-    grown, threshold = motion_evidence(residual, DynamicSeedingConfig())
-    plain, _ = motion_evidence(residual, DynamicSeedingConfig(grow_mads=10.0))
+    grown, threshold, _ = motion_evidence(residual, DynamicSeedingConfig())
+    plain = motion_evidence(residual, DynamicSeedingConfig(grow_mads=10.0)).mask
     hit = grown.bool()
     found, found_plain = float((hit & body).sum() / body.sum()), float((plain.bool() & body).sum() / body.sum())
     assert found > 0.6 and found > 1.5 * found_plain, (found, found_plain)
@@ -86,12 +86,16 @@ def test_a_large_mover_grows_on_the_background_levels():
     residual, disc = _large_mover(0.021)
     iou = {}
     for ratio in (0.0, DynamicSeedingConfig().background_sigma_ratio):  # 0: never the background's levels
-        hit = motion_evidence(residual, DynamicSeedingConfig(background_sigma_ratio=ratio))[0].bool()
+        hit = motion_evidence(residual, DynamicSeedingConfig(background_sigma_ratio=ratio)).mask.bool()
         iou[ratio] = float((hit & disc).sum() / (hit | disc).sum())
     assert iou[0.0] < 0.5 and iou[DynamicSeedingConfig().background_sigma_ratio] > 0.8, iou
+    large = motion_evidence(residual, DynamicSeedingConfig())
+    assert large.background_ratio is not None and large.background_ratio < 0.7
+    assert "background's levels" in large.summary()
     small, _ = _residuals()
-    assert torch.equal(motion_evidence(small, DynamicSeedingConfig())[0],
-                       motion_evidence(small, DynamicSeedingConfig(background_sigma_ratio=0.0))[0])
+    kept = motion_evidence(small, DynamicSeedingConfig())
+    assert kept.background_ratio is None and "background" not in kept.summary()
+    assert torch.equal(kept.mask, motion_evidence(small, DynamicSeedingConfig(background_sigma_ratio=0.0)).mask)
 
 
 def test_evidence_rejects_bad_shapes():

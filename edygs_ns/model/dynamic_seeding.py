@@ -172,11 +172,26 @@ def background_level(values: Tensor, median: float, sigma: float, mads: float, r
     return median, sigma
 
 
-def motion_evidence(
-    residual: Float[Tensor, "N H W"], config: DynamicSeedingConfig
-) -> Tuple[Float[Tensor, "N H W"], float]:
+class Evidence(NamedTuple):
+    """Motion evidence per latent: ``mask`` [N, H, W] 0/1 float, the strong ``threshold`` on the
+    filtered residual (colour units), and ``background_ratio``: the background's σ over the clip's
+    when the grow levels were taken on the background (a large mover), else None."""
+
+    mask: Float[Tensor, "N H W"]
+    threshold: float
+    background_ratio: Optional[float] = None
+
+    def summary(self) -> str:
+        """One line for the training log."""
+        line = f"motion evidence on {100.0 * float(self.mask.mean()):.1f}% of pixels (residual > {self.threshold:.3f}"
+        if self.background_ratio is not None:
+            line += f"; grown on the background's levels, its σ {self.background_ratio:.2f} of the clip's: a large mover"
+        return line + ")"
+
+
+def motion_evidence(residual: Float[Tensor, "N H W"], config: DynamicSeedingConfig) -> Evidence:
     """Binary (0/1 float) motion evidence per latent from the per-pixel mean absolute colour
-    residual of the static render; also returns the threshold used.
+    residual of the static render, with the threshold used (``Evidence``).
 
     Pixels whose coarse (``window_fraction``) box-filtered residual is over median +
     ``threshold_mads`` σ are evidence; with hysteresis (``grow_mads`` < ``threshold_mads``) the
@@ -193,15 +208,18 @@ def motion_evidence(
     threshold = max(median + config.threshold_mads * sigma, config.min_threshold)
     strong = filtered > threshold
     if config.grow_mads >= config.threshold_mads:
-        return strong.float(), threshold
+        return Evidence(strong.float(), threshold)
     fine = box_filter(residual, FINE_WINDOW)
     fine_median, fine_sigma = robust_level(fine)
     back_median, back_sigma = background_level(filtered, median, sigma, config.background_mads, config.background_rounds)
-    if back_sigma < config.background_sigma_ratio * sigma:  # a large mover inflates the clip's σ: grow on the background's
+    ratio = back_sigma / sigma if sigma > 0 else 1.0
+    background = ratio < config.background_sigma_ratio  # a large mover inflates the clip's σ: grow on the background's
+    if background:
         median, sigma = back_median, back_sigma
         fine_median, fine_sigma = background_level(fine, fine_median, fine_sigma, config.background_mads, config.background_rounds)
     weak = filtered > min(median + config.grow_mads * sigma, threshold)
-    return grow_regions(strong, weak, fine > fine_median + config.trim_mads * fine_sigma).float(), threshold
+    grown = grow_regions(strong, weak, fine > fine_median + config.trim_mads * fine_sigma).float()
+    return Evidence(grown, threshold, ratio if background else None)
 
 
 def grow_regions(strong: Bool[Tensor, "N H W"], weak: Bool[Tensor, "N H W"], keep: Bool[Tensor, "N H W"]) -> Bool[Tensor, "N H W"]:

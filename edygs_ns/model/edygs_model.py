@@ -421,10 +421,11 @@ class EdygsModel(SplatExportView):
             CONSOLE.log(message + " (rendered static-phase masks)")
             return
         cfg = self.config.seeding
-        evidence, threshold = motion_evidence(renders["residual"], cfg)
+        found_evidence = motion_evidence(renders["residual"], cfg)
+        evidence = found_evidence.mask
         targets = {"evidence": evidence, "rendered": rendered, "max": torch.maximum(rendered, evidence)}
         self.static_masks = targets[cfg.consistency_target].half()
-        message += f" ({cfg.consistency_target}); motion evidence on {100.0 * float(evidence.mean()):.1f}% of pixels (residual > {threshold:.3f})"
+        message += f" ({cfg.consistency_target}); {found_evidence.summary()}"
         if self.config.rigid_track.enabled:
             found = self._find_motion(renders, evidence)
             if cfg.consistency_target == "evidence":
@@ -455,15 +456,16 @@ class EdygsModel(SplatExportView):
             CONSOLE.log(f"[edygs] evidence refresh at step {self.step}: skipped, all {cfg.max_objects} rigid bodies in use")
             return
         renders = self._render_latents(deform=True, with_evidence=True)
-        evidence, threshold = motion_evidence(renders["residual"], cfg)
+        found_evidence = motion_evidence(renders["residual"], cfg)
+        evidence = found_evidence.mask
         known = (renders["mask"] > 0.5) | (self.static_masks.to(self.device).float() > 0.5)
         margin = max(1, int(round(cfg.refresh_margin * known.shape[-1])))
         covered = dilate(known, margin)
         found = self._find_motion(renders, evidence, covered=covered, existing=existing, candidates=cfg.refresh_candidates,
                                   steady=False)
         before = self.num_points
-        message = (f"[edygs] evidence refresh at step {self.step}: evidence on {100.0 * float(evidence.mean()):.1f}% of pixels "
-                   f"(residual > {threshold:.3f}), {100.0 * float((evidence.bool() & ~covered).float().mean()):.2f}% unexplained; "
+        message = (f"[edygs] evidence refresh at step {self.step}: {found_evidence.summary()}, "
+                   f"{100.0 * float((evidence.bool() & ~covered).float().mean()):.2f}% unexplained; "
                    f"{len(found.movers)} new moving object(s) of {len(found.objects)} tracked region(s)")
         if found.movers:
             message += self._add_movers(found, first_body=existing)
