@@ -106,6 +106,10 @@ class DynamicSeedingConfig:
     """evidence regions below this fraction of the image are noise"""
     min_relative_size: Suppress[float] = 0.1
     """regions below this fraction of the largest tracked region are not tracked"""
+    neck_fraction: Suppress[float] = 0.25
+    """a region is cut into parts where it narrows under twice this share of its radius (0: never) ..."""
+    part_divergence: Suppress[float] = 1.0
+    """... and the parts kept apart if their tracks part by more than this many times their summed sizes"""
     max_objects: Suppress[int] = 6
     """at most this many moving objects get seeds and a rigid body"""
     max_candidates: Suppress[int] = 10

@@ -52,7 +52,7 @@ from typing import Callable, List, Optional
 
 import numpy as np
 import torch
-from jaxtyping import Float
+from jaxtyping import Bool, Float
 from scipy import ndimage
 from torch import Tensor
 
@@ -125,6 +125,45 @@ def evidence_regions(evidence: Float[Tensor, "H W"], min_pixels: int) -> List[Te
     order = [int(k) + 1 for k in np.argsort(-sizes, kind="stable") if sizes[k] >= min_pixels]
     labels_t = torch.from_numpy(labels).to(evidence.device)
     return [labels_t == k for k in order]
+
+
+def split_at_necks(region: Bool[Tensor, "H W"], neck_fraction: float, min_pixels: int) -> List[Tensor]:
+    """The parts of ``region`` joined only by a neck narrower than twice ``neck_fraction`` of its
+    radius (two objects that touch in this latent, or an object and a flaw of the static model
+    beside it): the region eroded by a disk of that radius falls apart into cores (each at least a
+    tenth of the largest), and every pixel goes to its nearest core. ``[region]`` when it does not
+    fall apart or a part would be under ``min_pixels``."""
+    mask = region.detach().cpu().numpy().astype(bool)
+    erosion = int(round(neck_fraction * (mask.sum() / np.pi) ** 0.5))
+    if erosion < 1:
+        return [region]
+    offsets = np.arange(-erosion, erosion + 1)
+    disk = offsets[:, None] ** 2 + offsets[None, :] ** 2 <= erosion * erosion
+    labels, count = ndimage.label(ndimage.binary_erosion(mask, disk), structure=EIGHT_CONNECTED)
+    if count < 2:
+        return [region]
+    sizes = np.bincount(labels.ravel())[1:]
+    cores = [k + 1 for k in range(count) if sizes[k] >= 0.1 * sizes.max()]
+    if len(cores) < 2:
+        return [region]
+    labels = np.where(np.isin(labels, cores), labels, 0)
+    _, (rows, cols) = ndimage.distance_transform_edt(labels == 0, return_indices=True)
+    nearest = labels[rows, cols]
+    parts = [mask & (nearest == k) for k in cores]
+    if min(int(part.sum()) for part in parts) < min_pixels:
+        return [region]
+    return [torch.from_numpy(part).to(region.device) for part in sorted(parts, key=lambda part: -int(part.sum()))]
+
+
+def parts_diverge(tracks: List[RigidTrack], sizes: List[float], divergence: float) -> bool:
+    """Whether the tracks of a region's parts move apart: in some latent two of them have moved
+    relative to each other by more than ``divergence`` times their summed sizes (world units)."""
+    for a in range(len(tracks)):
+        for b in range(a + 1, len(tracks)):
+            apart = (tracks[a].translations - tracks[b].translations).norm(dim=-1).max()
+            if float(apart) > divergence * (sizes[a] + sizes[b]):
+                return True
+    return False
 
 
 def _next_region(evidence: Tensor, covered: Tensor, ref: int, min_pixels: int) -> Optional[tuple]:
@@ -264,20 +303,30 @@ def initialise_motion(
     earlier = [] if covered is None else [covered.bool()]  # the zone of the movers found before
     covered = torch.zeros_like(evidence, dtype=torch.bool) if covered is None else covered.clone().bool()
     result = MotionInit()
-    for _ in range(seeding.max_candidates if candidates is None else candidates):
-        found = _next_region(evidence, covered, ref, min_pixels)
-        if found is None or existing + len(result.movers) >= seeding.max_objects:
-            break
-        k, region = found
-        # each track costs as much as the largest one: once a large region was tracked, much
-        # smaller ones (pose-error specks, fragments) are not worth one
-        min_pixels = max(min_pixels, int(seeding.min_relative_size * float(region.sum())))
+
+    def seeded(k: int, region: Tensor) -> Optional[tuple]:
+        """(region, seeds, rigid track) of one evidence region of latent k; None without seeds."""
         seeds = seed_gaussians(region.float(), depth[k], latent(k), Ks[k], cams_to_world_cv[k], seeding)
         if len(seeds.points) == 0:
-            covered[k] |= region
-            continue
-        track = track_rigid(seeds.points, seeds.colors, seeds.radii, seeds.centre, times, evidence, latent, statics,
-                            viewmats, Ks, k, backend, tracking)
+            return None
+        return region, seeds, track_rigid(seeds.points, seeds.colors, seeds.radii, seeds.centre, times, evidence, latent,
+                                          statics, viewmats, Ks, k, backend, tracking)
+
+    def tracked_parts(k: int, region: Tensor, min_pixels: int) -> List[tuple]:
+        """The region cut at its necks when the parts' tracks move apart (two objects touching in
+        latent k, or an object beside a flaw of the static model), else the whole region."""
+        parts = split_at_necks(region, seeding.neck_fraction, min_pixels) if seeding.neck_fraction > 0 else [region]
+        if len(parts) > 1:
+            tracked = [t for t in (seeded(k, part) for part in parts) if t is not None]
+            sizes = [float(spread(seeds.points, seeds.centre)) for _, seeds, _ in tracked]
+            if len(tracked) > 1 and parts_diverge([track for _, _, track in tracked], sizes, seeding.part_divergence):
+                return tracked
+        whole = seeded(k, region)
+        return [] if whole is None else [whole]
+
+    def judge(k: int, region: Tensor, seeds: Seeds, track: RigidTrack, found_before: List[MotionObject]) -> MotionObject:
+        """The tracked region's depth, coverage seeds, reach and verdict (mover or not, and why); a
+        duplicate is told against the movers of ``found_before`` (not against parts of its own region)."""
         iou = track.iou[track.seen()]
         rigid_fit = len(iou) > 0 and float(iou.mean()) >= seeding.min_object_iou
         path = None
@@ -294,24 +343,37 @@ def initialise_motion(
         distances = (points - track.centre).norm(dim=-1)
         radius_px = (float(region.sum()) / torch.pi) ** 0.5
         shift_px = unexplained_shift(track, k, viewmats, Ks, cams_to_world_cv)
-        shift = shift_px / max(radius_px, 1e-9)
         presence = len(iou) / n
         mean_iou = float(iou.mean()) if len(iou) else 0.0
         # a region followed through most of the clip is real even when one rigid silhouette fits it
         # poorly (a deforming or articulated object): its track then only carries it, see below
         needed_px = needed_shift(radius_px, width, seeding, seeding.still_shift if rigid_fit else seeding.steady_shift)
-        duplicate = _duplicate(track, earlier + [o.track.claims for o in result.movers])
+        duplicate = _duplicate(track, earlier + [o.track.claims for o in found_before if o.moved])
         why = verdict(presence, mean_iou, rigid_fit, steady, shift_px, needed_px, duplicate, seeding)
         moved = why == ""
-        reach = tracking.reach * float(distances.max())
         if moved and not rigid_fit:
             # poor rigid fit: keep the track's translation as the base motion, drop its rotation (a
             # turn fitted to a changing shape is noise); the MLP residual carries the rest
             track = RigidTrack(track.centre, torch.zeros_like(track.rotvecs), track.translations, track.loss,
                                track.footprints, track.claims, track.iou)
-        result.objects.append(MotionObject(k, every, track, reach, shift, moved, why, path))
-        covered |= track.claims
+        return MotionObject(k, every, track, tracking.reach * float(distances.max()), shift_px / max(radius_px, 1e-9),
+                            moved, why, path)
+
+    for _ in range(seeding.max_candidates if candidates is None else candidates):
+        found = _next_region(evidence, covered, ref, min_pixels)
+        if found is None or existing + len(result.movers) >= seeding.max_objects:
+            break
+        k, region = found
+        # each track costs as much as the largest one: once a large region was tracked, much
+        # smaller ones (pose-error specks, fragments) are not worth one
+        min_pixels = max(min_pixels, int(seeding.min_relative_size * float(region.sum())))
         covered[k] |= region
+        found_before = list(result.objects)
+        for part, seeds, track in tracked_parts(k, region, min_pixels):
+            if existing + len(result.movers) >= seeding.max_objects:
+                break
+            result.objects.append(judge(k, part, seeds, track, found_before))
+            covered |= track.claims
     movers = result.movers
     if movers:
         near = torch.stack([o.track.claims for o in movers]).any(dim=0)
