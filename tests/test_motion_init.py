@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig
-from edygs_ns.model.motion_init import evidence_regions, initialise_motion, strays_far, verdict
+from edygs_ns.model.motion_init import evidence_regions, initialise_motion, parts_diverge, split_at_necks, strays_far, verdict
+from edygs_ns.model.rigid_track import RigidTrack
 from edygs_ns.model.rigid_track import RigidTrackConfig
 from edygs_ns.render.torch_backend import rasterize_torch
 
@@ -32,11 +33,12 @@ def _ball(centre: torch.Tensor, seed: int, count: int = 1500):
     return centre + RADIUS * dirs, palette[cells % 200], torch.full((count,), 0.015)
 
 
-def _clip(shifts: list):
+def _clip(shifts: list, apart: float = 0.6):
     """N latents of a static camera watching balls that move by ``shifts`` [3] per latent each
-    (zero: a still ball); returns latents, evidence (the union of the balls' silhouettes), the static
-    background render, depth, viewmats, cams_to_world, Ks and times."""
-    starts = [torch.tensor([-0.6, 0.0, DEPTH]), torch.tensor([0.6, 0.0, DEPTH])]
+    (zero: a still ball), at x = ∓``apart`` in the reference latent; returns latents, evidence (the
+    union of the balls' silhouettes), the static background render, depth, viewmats, cams_to_world,
+    Ks and times."""
+    starts = [torch.tensor([-apart, 0.0, DEPTH]), torch.tensor([apart, 0.0, DEPTH])]
     balls = [_ball(start, seed=k) for k, start in enumerate(starts[: len(shifts)])]
     K = torch.tensor([[F, 0.0, W / 2], [0.0, F, H / 2], [0.0, 0.0, 1.0]])
     eye = torch.eye(4)
@@ -63,9 +65,9 @@ def _clip(shifts: list):
             eye.repeat(N, 1, 1), K.repeat(N, 1, 1), n / (N - 1))
 
 
-def _initialise(latents, evidence, statics, depth, viewmats, c2w, Ks, times):
+def _initialise(latents, evidence, statics, depth, viewmats, c2w, Ks, times, seeding=DynamicSeedingConfig()):
     return initialise_motion(evidence, depth, statics, lambda i: latents[i], viewmats, c2w, Ks, times, REF, rasterize_torch,
-                             DynamicSeedingConfig(), RigidTrackConfig(steps=30))
+                             seeding, RigidTrackConfig(steps=30))
 
 
 def test_evidence_regions_are_separate_and_ordered_by_size():
@@ -100,6 +102,61 @@ def test_two_objects_are_found_apart_and_each_gets_its_own_track():
     assert len(found.seed_tensors().points) == sum(len(o.seeds.points) for o in movers)
     # M̂ is the evidence near the tracked objects: here all of it
     assert torch.equal(found.consistency, evidence)
+
+
+def _discs(*circles) -> torch.Tensor:
+    """A [40, 60] bool mask: the union of discs (row, col, radius in pixels)."""
+    rows, cols = torch.meshgrid(torch.arange(40.0), torch.arange(60.0), indexing="ij")
+    mask = torch.zeros(40, 60, dtype=torch.bool)
+    for r, c, radius in circles:
+        mask |= (rows - r) ** 2 + (cols - c) ** 2 <= radius**2
+    return mask
+
+
+def test_a_region_is_cut_at_its_neck_and_a_round_one_is_not():
+    touching = _discs((20, 18, 9), (20, 36, 8)) | (_discs((20, 27, 2)))  # two blobs and a thin bridge
+    parts = split_at_necks(touching, neck_fraction=0.25, min_pixels=10)
+    assert len(parts) == 2
+    assert torch.equal(parts[0] | parts[1], touching) and not bool((parts[0] & parts[1]).any())
+    assert int(parts[0].sum()) > int(parts[1].sum())  # largest first
+    assert bool(parts[0][20, 18]) and bool(parts[1][20, 36])
+    # a disc, a disc with a bump, and a split whose smaller part is under min_pixels stay whole
+    assert len(split_at_necks(_discs((20, 30, 12)), 0.25, 10)) == 1
+    assert len(split_at_necks(_discs((20, 30, 12), (20, 42, 3)), 0.25, 10)) == 1
+    assert len(split_at_necks(touching, 0.25, min_pixels=300)) == 1
+    small = _discs((20, 18, 11), (20, 37, 6)) | _discs((20, 30, 2))  # the small side: under a quarter
+    assert len(split_at_necks(small, 0.25, 10, min_share=0.1)) == 2
+    assert len(split_at_necks(small, 0.25, 10, min_share=0.25)) == 1
+    assert len(split_at_necks(touching, 0.0, 10)) == 1
+
+
+def _translated(steps: list) -> RigidTrack:
+    translations = torch.tensor(steps, dtype=torch.float32)
+    return RigidTrack(torch.zeros(3), torch.zeros_like(translations), translations, torch.zeros(len(steps)))
+
+
+def test_parts_diverge_only_when_their_tracks_move_apart():
+    left, right = _translated([[0, 0, 0], [-1, 0, 0], [-2, 0, 0]]), _translated([[0, 0, 0], [1, 0, 0], [2, 0, 0]])
+    together = _translated([[0, 0, 0], [-1.1, 0, 0], [-1.9, 0, 0]])
+    assert parts_diverge([left, right], [0.5, 0.5], divergence=1.0)  # 4 apart > 1
+    assert not parts_diverge([left, together], [0.5, 0.5], divergence=1.0)  # 0.1 apart
+    assert not parts_diverge([left, right], [2.5, 2.5], divergence=1.0)  # big parts: 4 < 5
+
+
+def test_two_touching_objects_are_cut_apart_and_each_tracked():
+    # the balls touch in the reference latent (one evidence region) and leave each other
+    shifts = [[-0.12, 0.0, 0.0], [0.12, 0.04, 0.0]]
+    latents, evidence, statics, depth, viewmats, c2w, Ks, times = _clip(shifts, apart=RADIUS * 1.05)
+    assert len(evidence_regions(evidence[REF], 10)) == 1
+    found = _initialise(latents, evidence, statics, depth, viewmats, c2w, Ks, times)
+    movers = sorted(found.movers, key=lambda o: float(o.track.centre[0]))
+    assert len(movers) == 2, [o.summary() for o in found.objects]
+    for obj, shift in zip(movers, shifts):
+        travelled = obj.track.translations[-1] - obj.track.translations[0]
+        assert float(travelled[0]) * shift[0] > 0  # each body goes its own object's way
+    # without the cut, one track follows the joined region: one mover
+    whole = _initialise(latents, evidence, statics, depth, viewmats, c2w, Ks, times, DynamicSeedingConfig(neck_fraction=0.0))
+    assert len(whole.movers) == 1, [o.summary() for o in whole.objects]
 
 
 def test_a_still_region_is_no_mover_and_seeds_nothing():

@@ -108,6 +108,8 @@ class DynamicSeedingConfig:
     """regions below this fraction of the largest tracked region are not tracked"""
     neck_fraction: Suppress[float] = 0.25
     """a region is cut into parts where it narrows under twice this share of its radius (0: never) ..."""
+    neck_min_share: Suppress[float] = 0.25
+    """... if every part holds at least this share of its pixels ..."""
     part_divergence: Suppress[float] = 1.0
     """... and the parts kept apart if their tracks part by more than this many times their summed sizes"""
     max_objects: Suppress[int] = 6

@@ -11,7 +11,11 @@ deformation's base motion (``deformation.RigidMotion``), and the mask-consistenc
    that no object found so far covers, the largest of those, with its own latent as reference (an
    object missed or unseen at the reference time). Regions smaller than ``min_object_fraction`` of
    the image, or than ``min_relative_size`` of the first (largest) region, are noise: every
-   tracked region costs a full track at the switch.
+   tracked region costs a full track at the switch. A region that narrows to a neck (under twice
+   ``neck_fraction`` of its radius) is cut there (``split_at_necks``: two objects touching in that
+   latent, or an object beside a flaw of the static model); its parts are tracked apart, and kept
+   apart when their tracks part by more than ``part_divergence`` times their summed sizes
+   (``parts_diverge``), else the whole region is tracked as one.
 3. Each object gets its own seeds (a cap at its own median static depth), its own rigid track
    (``rigid_track.track_rigid``, which follows only the evidence near the object), then seeds and
    track together move to the depth at which the path of one of its points is a quadratic in
@@ -28,7 +32,8 @@ deformation's base motion (``deformation.RigidMotion``), and the mask-consistenc
    of its radius and its silhouette still overlaps it by ``steady_iou`` (under that the track
    drifted off its evidence, and its shift is drift); its body then moves without turning and the
    deformation MLP's residual carries the rest (the fallback where a rigid fit is poor). Otherwise it is a flaw of the static model. A track that mostly runs
-   inside a mover's claimed zone is that mover again (started where it crossed another object). A region that is no mover gets
+   inside a mover's claimed zone is that mover again (started where it crossed another object;
+   parts cut from one region are not tested against each other). A region that is no mover gets
    no seeds and no body: nothing moving, nothing added. An object that only turns in place is not
    told from a flaw (its rotation fit on a few pixels is noise-level evidence).
 4. M̂ is the evidence near the kept objects' tracks (the rest of the evidence is no object).
@@ -127,12 +132,12 @@ def evidence_regions(evidence: Float[Tensor, "H W"], min_pixels: int) -> List[Te
     return [labels_t == k for k in order]
 
 
-def split_at_necks(region: Bool[Tensor, "H W"], neck_fraction: float, min_pixels: int) -> List[Tensor]:
+def split_at_necks(region: Bool[Tensor, "H W"], neck_fraction: float, min_pixels: int, min_share: float = 0.25) -> List[Tensor]:
     """The parts of ``region`` joined only by a neck narrower than twice ``neck_fraction`` of its
     radius (two objects that touch in this latent, or an object and a flaw of the static model
     beside it): the region eroded by a disk of that radius falls apart into cores (each at least a
     tenth of the largest), and every pixel goes to its nearest core. ``[region]`` when it does not
-    fall apart or a part would be under ``min_pixels``."""
+    fall apart or a part would be under ``min_pixels`` or under ``min_share`` of the region."""
     mask = region.detach().cpu().numpy().astype(bool)
     erosion = int(round(neck_fraction * (mask.sum() / np.pi) ** 0.5))
     if erosion < 1:
@@ -150,7 +155,7 @@ def split_at_necks(region: Bool[Tensor, "H W"], neck_fraction: float, min_pixels
     _, (rows, cols) = ndimage.distance_transform_edt(labels == 0, return_indices=True)
     nearest = labels[rows, cols]
     parts = [mask & (nearest == k) for k in cores]
-    if min(int(part.sum()) for part in parts) < min_pixels:
+    if min(int(part.sum()) for part in parts) < max(min_pixels, min_share * mask.sum()):
         return [region]
     return [torch.from_numpy(part).to(region.device) for part in sorted(parts, key=lambda part: -int(part.sum()))]
 
@@ -315,7 +320,7 @@ def initialise_motion(
     def tracked_parts(k: int, region: Tensor, min_pixels: int) -> List[tuple]:
         """The region cut at its necks when the parts' tracks move apart (two objects touching in
         latent k, or an object beside a flaw of the static model), else the whole region."""
-        parts = split_at_necks(region, seeding.neck_fraction, min_pixels) if seeding.neck_fraction > 0 else [region]
+        parts = split_at_necks(region, seeding.neck_fraction, min_pixels, seeding.neck_min_share) if seeding.neck_fraction > 0 else [region]
         if len(parts) > 1:
             tracked = [t for t in (seeded(k, part) for part in parts) if t is not None]
             sizes = [float(spread(seeds.points, seeds.centre)) for _, seeds, _ in tracked]
