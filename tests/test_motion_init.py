@@ -151,12 +151,14 @@ def test_two_touching_objects_are_cut_apart_and_each_tracked():
     found = _initialise(latents, evidence, statics, depth, viewmats, c2w, Ks, times)
     movers = sorted(found.movers, key=lambda o: float(o.track.centre[0]))
     assert len(movers) == 2, [o.summary() for o in found.objects]
+    assert all(o.cut and "cut at a neck" in o.summary() for o in movers)
     for obj, shift in zip(movers, shifts):
         travelled = obj.track.translations[-1] - obj.track.translations[0]
         assert float(travelled[0]) * shift[0] > 0  # each body goes its own object's way
     # without the cut, one track follows the joined region: one mover
     whole = _initialise(latents, evidence, statics, depth, viewmats, c2w, Ks, times, DynamicSeedingConfig(neck_fraction=0.0))
     assert len(whole.movers) == 1, [o.summary() for o in whole.objects]
+    assert not any(o.cut for o in whole.objects)
 
 
 def test_a_still_region_is_no_mover_and_seeds_nothing():

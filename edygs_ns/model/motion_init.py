@@ -81,6 +81,7 @@ class MotionObject:
     moved: bool
     verdict: str = ""
     path: Optional[PathFit] = None
+    cut: bool = False  # a part of a region cut at a neck (``split_at_necks``)
 
     @property
     def size(self) -> float:
@@ -94,7 +95,8 @@ class MotionObject:
         why = f"; {self.verdict}" if self.verdict and not self.moved else ""
         depth = "" if self.path is None else (f", path depth x{self.path.factor:.2f} (off its lines of sight by "
                                                f"{self.path.residual:.2f} sizes{'' if self.path.applied else '; not applied'})")
-        return f"latent {self.ref}: {len(self.seeds.points)} seeds, moves {self.shift:.1f} radii in the image, turns {turn:.0f}°{fit}{depth}{why}"
+        part = " (part of a region cut at a neck)" if self.cut else ""
+        return f"latent {self.ref}{part}: {len(self.seeds.points)} seeds, moves {self.shift:.1f} radii in the image, turns {turn:.0f}°{fit}{depth}{why}"
 
 
 @dataclass
@@ -374,10 +376,12 @@ def initialise_motion(
         min_pixels = max(min_pixels, int(seeding.min_relative_size * float(region.sum())))
         covered[k] |= region
         found_before = list(result.objects)
-        for part, seeds, track in tracked_parts(k, region, min_pixels):
+        pieces = tracked_parts(k, region, min_pixels)
+        for part, seeds, track in pieces:
             if existing + len(result.movers) >= seeding.max_objects:
                 break
             result.objects.append(judge(k, part, seeds, track, found_before))
+            result.objects[-1].cut = len(pieces) > 1
             covered |= track.claims
     movers = result.movers
     if movers:
