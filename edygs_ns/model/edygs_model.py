@@ -10,7 +10,7 @@ The model renders, computes the losses and carries out the phase steps it is ask
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Dict, List, Literal, Optional, Tuple, Type, Union
 
 import torch
@@ -18,7 +18,6 @@ from torch import Tensor
 from torch.nn import Parameter
 from tyro.conf import Suppress
 
-from nerfstudio.cameras.camera_optimizers import CameraOptimizer, CameraOptimizerConfig
 from nerfstudio.cameras.cameras import Cameras
 from nerfstudio.configs.config_utils import to_immutable_dict
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
@@ -44,6 +43,7 @@ from edygs_ns.model.dynamic_seeding import (
     seed_gaussians,
 )
 from edygs_ns.model.motion_init import MotionInit, initialise_motion
+from edygs_ns.model.pose_refinement import PoseRefinementConfig, PoseRefiner
 from edygs_ns.model.rigid_track import RigidTrackConfig
 from edygs_ns.model.gaussians import GAUSSIAN_ATTRIBUTES, init_gaussians, seed_tensors
 from edygs_ns.model.splat_export_view import SplatExportView
@@ -87,8 +87,8 @@ class EdygsModelConfig(ModelConfig):
     """motion evidence and dynamic seeds at the static -> dynamic switch"""
     rigid_track: RigidTrackConfig = field(default_factory=RigidTrackConfig)
     """rigid tracking of each moving object's seeds at the switch (its base motion afterwards)"""
-    camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="SO3xR3"))
-    """per-latent-frame pose refinement (nerfstudio's camera optimiser)"""
+    camera_optimizer: PoseRefinementConfig = field(default_factory=PoseRefinementConfig)
+    """per-latent-frame pose refinement (nerfstudio's camera optimiser, rotations at a tenth of its step)"""
     rasterizer: Literal["auto", "cpu", "torch", "gsplat"] = "auto"
     """rasteriser; auto: gsplat on CUDA, the compiled one on CPU"""
     sh_degree: int = 3
@@ -184,8 +184,8 @@ class EdygsModel(SplatExportView):
         self.rigid_motion = RigidMotion(self.num_train_data, bodies=self.config.seeding.max_objects)
         camera_config = self.config.camera_optimizer
         if not self.config.optimize_poses:
-            camera_config = CameraOptimizerConfig(mode="off")
-        self.camera_optimizer: CameraOptimizer = camera_config.setup(num_cameras=self.num_train_data, device="cpu")
+            camera_config = replace(camera_config, mode="off")
+        self.camera_optimizer: PoseRefiner = camera_config.setup(num_cameras=self.num_train_data, device="cpu")
         latent_index = metadata.get("latent_index")
         if latent_index is None or len(latent_index) != self.num_train_data:
             latent_index = torch.full((self.num_train_data,), -1, dtype=torch.long)
@@ -238,6 +238,7 @@ class EdygsModel(SplatExportView):
                 param.data = torch.zeros(state_dict[key].shape, dtype=param.dtype, device=param.device)
         self.rigid_motion.prepare_load(state_dict, "rigid_motion.")
         self.exposure_cache.prepare_load(state_dict, "exposure_cache.")
+        self.camera_optimizer.prepare_load(state_dict, "camera_optimizer.")
         if "static_masks" in state_dict:
             self.static_masks = torch.zeros_like(state_dict["static_masks"], device=self.static_masks.device)
         return super().load_state_dict(state_dict, strict=strict)
@@ -683,7 +684,7 @@ class EdygsModel(SplatExportView):
         copies the rotations to the host every step)."""
         if self.camera_optimizer.config.mode == "off":
             return
-        adjustment = self.camera_optimizer.pose_adjustment.detach()
+        adjustment = self.camera_optimizer.adjustment().detach()
         trans, rot = adjustment[:, :3].norm(dim=-1), adjustment[:, 3:].norm(dim=-1)
         metrics["camera_opt_translation_max"] = trans.max()
         metrics["camera_opt_translation_mean"] = trans.mean()
