@@ -38,10 +38,9 @@ class PoseRefinementConfig(CameraOptimizerConfig):
 
     _target: Type = field(default_factory=lambda: PoseRefiner)
     mode: Literal["off", "SO3xR3", "SE3"] = "SO3xR3"
-    """pose correction: SO3xR3 (default), SE3, or off"""
+    """how each latent's pose is corrected (or off)"""
     rotation_step: float = 0.1
-    """rotation corrections move at this fraction of the translations' learning rate (the authors'
-    1e-5 against 1e-4); 1 is nerfstudio's behaviour"""
+    """rotations step at this fraction of the translations' learning rate (authors: 0.1; nerfstudio: 1)"""
 
 
 class PoseRefiner(CameraOptimizer):
