@@ -88,7 +88,7 @@ class EdygsModelConfig(ModelConfig):
     rigid_track: RigidTrackConfig = field(default_factory=RigidTrackConfig)
     """rigid tracking of each moving object's seeds at the switch (its base motion afterwards)"""
     camera_optimizer: PoseRefinementConfig = field(default_factory=PoseRefinementConfig)
-    """per-latent-frame pose refinement (nerfstudio's camera optimiser, rotations at a tenth of its step)"""
+    """per-latent-frame pose refinement (nerfstudio's camera optimiser; rotation-step: D24)"""
     rasterizer: Literal["auto", "cpu", "torch", "gsplat"] = "auto"
     """rasteriser; auto: gsplat on CUDA, the compiled one on CPU"""
     sh_degree: int = 3
