@@ -51,29 +51,29 @@ class PoseRefiner(CameraOptimizer):
 
     def __init__(self, config: PoseRefinementConfig, num_cameras: int, device: Any, **kwargs: Any) -> None:
         super().__init__(config, num_cameras, device, **kwargs)
+        if self.non_trainable_camera_indices is not None:
+            raise ValueError("PoseRefiner: every training camera is refined (no non_trainable_camera_indices)")
         step = float(config.rotation_step)
         if not step > 0:
             raise ValueError(f"camera_optimizer.rotation_step must be positive, got {step}")
         self.register_buffer(ROTATION_SCALE_KEY, torch.tensor(step, dtype=torch.float32, device=device))
 
-    def adjustment(self) -> Float[Tensor, "N 6"]:
-        """[N, 6] pose corrections as applied: translation (world units), rotation (axis-angle, rad)."""
-        raw = self.pose_adjustment
+    def _applied(self, raw: Float[Tensor, "C 6"]) -> Float[Tensor, "C 6"]:
+        """Rows of the parameter as applied: translation as is, rotation times ``rotation_scale``."""
         scale = self.rotation_scale.to(raw.device, raw.dtype)
         return torch.cat([raw[:, :TRANSLATION_DIMS], raw[:, TRANSLATION_DIMS:] * scale], dim=-1)
+
+    def adjustment(self) -> Float[Tensor, "N 6"]:
+        """[N, 6] pose corrections as applied: translation (world units), rotation (axis-angle, rad)."""
+        return self._applied(self.pose_adjustment)
 
     def forward(self, indices: Int[Tensor, "C"]) -> Float[Tensor, "C 3 4"]:
         """Correction matrices [C, 3, 4] of the cameras ``indices`` (identity when off)."""
         if self.config.mode == "off":
             return torch.eye(4, device=self.device)[None, :3, :4].tile(indices.shape[0], 1, 1)
-        tangent = self.adjustment()[indices.to(self.pose_adjustment.device), :]
+        tangent = self._applied(self.pose_adjustment[indices.to(self.pose_adjustment.device), :])
         exp_map = exp_map_SO3xR3 if self.config.mode == "SO3xR3" else exp_map_SE3
-        out = exp_map(tangent)
-        if self.non_trainable_camera_indices is not None:
-            fixed = self.non_trainable_camera_indices.to(out.device)
-            keep = ~torch.isin(indices.to(out.device), fixed)
-            out = torch.where(keep[:, None, None], out, torch.eye(4, device=out.device, dtype=out.dtype)[:3, :4])
-        return out
+        return exp_map(tangent)
 
     def prepare_load(self, state_dict: Dict[str, Tensor], prefix: str) -> None:
         """Give a checkpoint that predates the rotation factor (no ``rotation_scale``) the factor it
