@@ -104,6 +104,33 @@ def test_two_objects_are_found_apart_and_each_gets_its_own_track():
     assert torch.equal(found.consistency, evidence)
 
 
+def _two_balls(shifts: list, apart: float, regions: int):
+    """The clip of two balls ``apart`` (``_clip``), whose reference latent holds ``regions``
+    evidence regions, and its two movers, left first (asserted to be two)."""
+    clip = _clip(shifts, apart=apart)
+    assert len(evidence_regions(clip[1][REF], 10)) == regions
+    found = _initialise(*clip)
+    movers = sorted(found.movers, key=lambda o: float(o.track.centre[0]))
+    assert len(movers) == 2, [o.summary() for o in found.objects]
+    return clip, movers
+
+
+def test_an_object_inside_anothers_claimed_zone_is_found_too():
+    # two balls two pixels apart in the reference latent (two regions), the second inside the
+    # first's claimed zone (its silhouette plus a radius), going opposite ways: each is seeded and
+    # tracked from its whole region (not from what the first one's zone leaves of it, which fits
+    # its ball with IoU 0.40)
+    shifts = [[-0.12, 0.0, 0.0], [0.12, 0.0, 0.0]]
+    _, movers = _two_balls(shifts, apart=RADIUS * 1.15, regions=2)
+    assert all(o.ref == REF for o in movers)
+    for obj in movers:
+        iou = obj.track.iou[torch.isfinite(obj.track.iou)]
+        assert float(iou.mean()) > 0.6, obj.summary()
+    for obj, shift in zip(movers, shifts):
+        travelled = obj.track.translations[-1] - obj.track.translations[0]
+        assert float(travelled[0]) * shift[0] > 0  # each body goes its own ball's way
+
+
 def _discs(*circles) -> torch.Tensor:
     """A [40, 60] bool mask: the union of discs (row, col, radius in pixels)."""
     rows, cols = torch.meshgrid(torch.arange(40.0), torch.arange(60.0), indexing="ij")
@@ -146,17 +173,13 @@ def test_parts_diverge_only_when_their_tracks_move_apart():
 def test_two_touching_objects_are_cut_apart_and_each_tracked():
     # the balls touch in the reference latent (one evidence region) and leave each other
     shifts = [[-0.12, 0.0, 0.0], [0.12, 0.04, 0.0]]
-    latents, evidence, statics, depth, viewmats, c2w, Ks, times = _clip(shifts, apart=RADIUS * 1.05)
-    assert len(evidence_regions(evidence[REF], 10)) == 1
-    found = _initialise(latents, evidence, statics, depth, viewmats, c2w, Ks, times)
-    movers = sorted(found.movers, key=lambda o: float(o.track.centre[0]))
-    assert len(movers) == 2, [o.summary() for o in found.objects]
+    clip, movers = _two_balls(shifts, apart=RADIUS * 1.05, regions=1)
     assert all(o.cut and "cut at a neck" in o.summary() for o in movers)
     for obj, shift in zip(movers, shifts):
         travelled = obj.track.translations[-1] - obj.track.translations[0]
         assert float(travelled[0]) * shift[0] > 0  # each body goes its own object's way
     # without the cut, one track follows the joined region: one mover
-    whole = _initialise(latents, evidence, statics, depth, viewmats, c2w, Ks, times, DynamicSeedingConfig(neck_fraction=0.0))
+    whole = _initialise(*clip, DynamicSeedingConfig(neck_fraction=0.0))
     assert len(whole.movers) == 1, [o.summary() for o in whole.objects]
     assert not any(o.cut for o in whole.objects)
 
@@ -201,3 +224,6 @@ def test_verdict_names_the_first_failed_test():
     assert "under 0.15 for a region found in most latents" in verdict(**dict(ok, mean_iou=0.1, rigid_fit=False))  # drifted off
     assert "20.0 px" in verdict(**dict(ok, needed_px=30.0))
     assert "found before" in verdict(**dict(ok, duplicate=True))
+    # evidence where few training views see the static scene: a poorly fitted static model there
+    assert "few training views" in verdict(**dict(ok, support=0.4)) and "0.40" in verdict(**dict(ok, support=0.4))
+    assert verdict(**dict(ok, support=0.7)) == ""

@@ -136,6 +136,9 @@ class DynamicSeedingConfig:
     """such a region must stray this many of its radii instead of ``still_shift``"""
     steady_iou: Suppress[float] = 0.15
     """... and its silhouette still overlap its evidence by this mean IoU (below it drifted off)"""
+    min_view_support: Suppress[float] = 0.6
+    """a mover's evidence lies where at least this share of the clip's typical number of training
+    views sees the static surface (under it, the static model is fitted from few views there)"""
 
 
 def dilate(masks: Bool[Tensor, "... H W"], pixels: int) -> Bool[Tensor, "... H W"]:

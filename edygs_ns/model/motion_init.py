@@ -26,14 +26,19 @@ deformation's base motion (``deformation.RigidMotion``), and the mask-consistenc
    the track: wherever on the reference latent's ray through the region a still point is put (the
    static depth may be wrong), the tracked centre strays from it by ``still_shift`` of the region's
    radius (at least ``still_shift_fraction``, at most ``still_shift_cap`` of the image width) in
-   some latent. A region followed
+   some latent, and its evidence lies where the training views see the static scene about as often
+   as they see the clip's typical pixel (``min_view_support``, ``view_support``: where few views
+   saw it, e.g. past the path's end or at the frame's edge, the static model is poorly fitted and
+   its residual is no motion). A region followed
    through ``steady_presence`` of the latents is kept even when the rigid silhouette fits it
    poorly (a deforming or articulated object), if it strays ``steady_shift`` (not ``still_shift``)
    of its radius and its silhouette still overlaps it by ``steady_iou`` (under that the track
    drifted off its evidence, and its shift is drift); its body then moves without turning and the
    deformation MLP's residual carries the rest (the fallback where a rigid fit is poor). Otherwise it is a flaw of the static model. A track that mostly runs
    inside a mover's claimed zone is that mover again (started where it crossed another object;
-   parts cut from one region are not tested against each other). A region that is no mover gets
+   parts cut from one region are not tested against each other); in the latent where a mover was
+   found, the other separate regions are other objects: they stay unclaimed, and are tested
+   against the mover's footprint there, not its zone. A region that is no mover gets
    no seeds and no body: nothing moving, nothing added. An object that only turns in place is not
    told from a flaw (its rotation fit on a few pixels is noise-level evidence).
 4. M̂ is the evidence near the kept objects' tracks (the rest of the evidence is no object).
@@ -64,6 +69,7 @@ from torch import Tensor
 from edygs_ns.model.dynamic_seeding import EIGHT_CONNECTED, DynamicSeedingConfig, Seeds, seed_gaussians
 from edygs_ns.model.path_depth import PathFit, path_depth, rescale
 from edygs_ns.model.rigid_track import RigidTrack, RigidTrackConfig, coverage_seeds, spread, track_rigid
+from edygs_ns.model.view_support import typical_support, view_support
 from edygs_ns.render.contract import RasterBackend
 
 
@@ -236,7 +242,7 @@ def strays_far(shift_px: float, radius_px: float, width: int, seeding: DynamicSe
 
 
 def verdict(presence: float, mean_iou: float, rigid_fit: bool, steady: bool, shift_px: float, needed_px: float,
-            duplicate: bool, seeding: DynamicSeedingConfig) -> str:
+            duplicate: bool, seeding: DynamicSeedingConfig, support: float = 1.0) -> str:
     """Why a tracked region is no mover (the first test it fails, in the order of the module
     docstring), or "" when it is one."""
     if presence < seeding.min_presence:
@@ -250,25 +256,38 @@ def verdict(presence: float, mean_iou: float, rigid_fit: bool, steady: bool, shi
         return why
     if shift_px < needed_px:
         return f"strays {shift_px:.1f} px from a still point, under the {needed_px:.1f} px needed"
+    if support < seeding.min_view_support:
+        return (f"its evidence lies where few training views see the static scene ({support:.2f} of the "
+                f"clip's typical support, under {seeding.min_view_support:.2f})")
     if duplicate:
         return "follows a mover found before"
     return ""
 
 
-def _duplicate(track: RigidTrack, claims: List[Tensor], share: float = 0.5) -> bool:
+def _duplicate(track: RigidTrack, zones: List[Tensor], share: float = 0.5) -> bool:
     """Whether ``track`` follows a mover already found: in the median latent where it sees its
-    object, more than ``share`` of its footprint lies in that mover's claimed zone ([N, H, W] bool
-    each; two tracks of one object, e.g. one started where the object crossed another)."""
+    object, more than ``share`` of its footprint lies in one of the movers' ``zones`` ([N, H, W]
+    bool each: a claimed zone, or the footprint of a mover found in the same latent; two tracks of
+    one object, e.g. one started where the object crossed another)."""
     own = track.footprints
     sizes = own.flatten(1).sum(dim=1)
     seen = sizes > 0
     if not bool(seen.any()):
         return False
-    for zone in claims:
+    for zone in zones:
         inside = (own & zone).flatten(1).sum(dim=1)[seen] / sizes[seen]
         if float(inside.median()) > share:
             return True
     return False
+
+
+def relative_support(pixels: Bool[Tensor, "N H W"], typical: float, depth: Float[Tensor, "N H W"],
+                     viewmats: Float[Tensor, "N 4 4"], cams_to_world_cv: Float[Tensor, "N 4 4"],
+                     Ks: Float[Tensor, "N 3 3"]) -> float:
+    """Median view support of ``pixels`` (an object's evidence) over the clip's ``typical`` support
+    (``view_support``); 1.0 when none of them has a static depth."""
+    values = view_support(pixels, depth, viewmats, cams_to_world_cv, Ks)
+    return float(values.median()) / max(typical, 1e-9) if len(values) else 1.0
 
 
 def initialise_motion(
@@ -310,6 +329,7 @@ def initialise_motion(
     earlier = [] if covered is None else [covered.bool()]  # the zone of the movers found before
     covered = torch.zeros_like(evidence, dtype=torch.bool) if covered is None else covered.clone().bool()
     result = MotionInit()
+    typical = typical_support(depth, viewmats, cams_to_world_cv, Ks)
 
     def seeded(k: int, region: Tensor) -> Optional[tuple]:
         """(region, seeds, rigid track) of one evidence region of latent k; None without seeds."""
@@ -355,8 +375,12 @@ def initialise_motion(
         # a region followed through most of the clip is real even when one rigid silhouette fits it
         # poorly (a deforming or articulated object): its track then only carries it, see below
         needed_px = needed_shift(radius_px, width, seeding, seeding.still_shift if rigid_fit else seeding.steady_shift)
-        duplicate = _duplicate(track, earlier + [o.track.claims for o in found_before if o.moved])
-        why = verdict(presence, mean_iou, rigid_fit, steady, shift_px, needed_px, duplicate, seeding)
+        # a mover found in this same latent is where its footprint is: a separate region beside it
+        # there is another object, even inside its claimed zone
+        zones = [o.track.footprints if o.ref == k else o.track.claims for o in found_before if o.moved]
+        duplicate = _duplicate(track, earlier + zones)
+        support = relative_support(track.footprints & (evidence > 0.5), typical, depth, viewmats, cams_to_world_cv, Ks)
+        why = verdict(presence, mean_iou, rigid_fit, steady, shift_px, needed_px, duplicate, seeding, support)
         moved = why == ""
         if moved and not rigid_fit:
             # poor rigid fit: keep the track's translation as the base motion, drop its rotation (a
@@ -374,6 +398,9 @@ def initialise_motion(
         # each track costs as much as the largest one: once a large region was tracked, much
         # smaller ones (pose-error specks, fragments) are not worth one
         min_pixels = max(min_pixels, int(seeding.min_relative_size * float(region.sum())))
+        # the latent's other separate regions stay to be tracked even inside this one's claims
+        others = evidence_regions(((evidence[k] > 0.5) & ~covered[k] & ~region).float(), min_pixels)
+        others = torch.stack(others).any(dim=0) if others else torch.zeros_like(region)
         covered[k] |= region
         found_before = list(result.objects)
         pieces = tracked_parts(k, region, min_pixels)
@@ -383,6 +410,7 @@ def initialise_motion(
             result.objects.append(judge(k, part, seeds, track, found_before))
             result.objects[-1].cut = len(pieces) > 1
             covered |= track.claims
+            covered[k] &= ~others
     movers = result.movers
     if movers:
         near = torch.stack([o.track.claims for o in movers]).any(dim=0)

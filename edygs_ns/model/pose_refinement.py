@@ -1,12 +1,12 @@
-"""Per-latent pose refinement with an optional slower rotation: nerfstudio's camera optimiser, its
-rotation corrections scaled by ``rotation_step`` (1 by default: nerfstudio's behaviour).
+"""Per-latent pose refinement with a slower rotation: nerfstudio's camera optimiser, its rotation
+corrections scaled by ``rotation_step`` (0.1 by default, the authors' ratio; 1 is nerfstudio's).
 
 nerfstudio keeps one [N, 6] parameter (translation, then rotation as an axis-angle) in one Adam
 group, so both parts take steps of about the same size (Adam normalises the gradient). The
 authors step rotations at a tenth of the translations' learning rate (1e-5 against 1e-4,
 reference notes). A rotation and a sideways move shift the image alike over one exposure's short
 baseline, and with equal steps the refinement drifts slowly in rotation; the authors' 0.1 holds
-part of that drift but is not the default yet (docs/method.md, D24).
+part of that drift (docs/method.md, D24).
 Here the rotation part of the parameter is multiplied by ``rotation_step`` before the exponential
 map, which under Adam is a rotation learning rate ``rotation_step`` times the group's.
 nerfstudio's regulariser (``rot_l2_penalty``) still applies to the parameter, i.e. to the applied
@@ -40,8 +40,8 @@ class PoseRefinementConfig(CameraOptimizerConfig):
     _target: Type = field(default_factory=lambda: PoseRefiner)
     mode: Literal["off", "SO3xR3", "SE3"] = "SO3xR3"
     """how each latent's pose is corrected (or off)"""
-    rotation_step: float = 1.0
-    """rotations step at this fraction of the translations' learning rate (nerfstudio: 1; authors: 0.1, D24)"""
+    rotation_step: float = 0.1
+    """rotations step at this fraction of the translations' learning rate (authors: 0.1, D24; nerfstudio: 1)"""
 
 
 class PoseRefiner(CameraOptimizer):
