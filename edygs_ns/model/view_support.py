@@ -50,11 +50,11 @@ def view_support(
     if len(index) == 0:
         return depth.new_zeros(0)
     index = index[_strided(len(index), MAX_PIXELS).to(index.device)]
-    world = torch.cat([
-        backproject(index[at, 2], index[at, 1], depth[k, index[at, 1], index[at, 2]], Ks[k], cams_to_world_cv[k])
-        for k in index[:, 0].unique().tolist()
-        for at in [index[:, 0] == k]
-    ])  # fmt: skip
+    points = []
+    for k in index[:, 0].unique().tolist():  # back-projected latent by latent
+        row, col = index[index[:, 0] == k, 1:].unbind(dim=1)
+        points.append(backproject(col, row, depth[k, row, col], Ks[k], cams_to_world_cv[k]))
+    world = torch.cat(points)
     views = _strided(n, MAX_VIEWS).to(depth.device)
     seen = torch.einsum("vij,mj->vmi", viewmats[views, :3, :3], world) + viewmats[views, None, :3, 3]
     pix = torch.einsum("vij,vmj->vmi", Ks[views], seen)
