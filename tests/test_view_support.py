@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from edygs_ns.model.motion_init import relative_support
-from edygs_ns.model.view_support import typical_support, view_support
+from edygs_ns.model.view_support import relative_support, typical_support, view_support
 
 H, W, F, N = 40, 60, 50.0, 11
 WALL = 4.0  # a wall facing the cameras, this far in front of them (world units)

@@ -69,7 +69,7 @@ from torch import Tensor
 from edygs_ns.model.dynamic_seeding import EIGHT_CONNECTED, DynamicSeedingConfig, Seeds, seed_gaussians
 from edygs_ns.model.path_depth import PathFit, path_depth, rescale
 from edygs_ns.model.rigid_track import RigidTrack, RigidTrackConfig, coverage_seeds, spread, track_rigid
-from edygs_ns.model.view_support import typical_support, view_support
+from edygs_ns.model.view_support import relative_support, typical_support
 from edygs_ns.render.contract import RasterBackend
 
 
@@ -279,15 +279,6 @@ def _duplicate(track: RigidTrack, zones: List[Tensor], share: float = 0.5) -> bo
         if float(inside.median()) > share:
             return True
     return False
-
-
-def relative_support(pixels: Bool[Tensor, "N H W"], typical: float, depth: Float[Tensor, "N H W"],
-                     viewmats: Float[Tensor, "N 4 4"], cams_to_world_cv: Float[Tensor, "N 4 4"],
-                     Ks: Float[Tensor, "N 3 3"]) -> float:
-    """Median view support of ``pixels`` (an object's evidence) over the clip's ``typical`` support
-    (``view_support``); 1.0 when none of them has a static depth."""
-    values = view_support(pixels, depth, viewmats, cams_to_world_cv, Ks)
-    return float(values.median()) / max(typical, 1e-9) if len(values) else 1.0
 
 
 def initialise_motion(

@@ -72,5 +72,13 @@ def typical_support(
     Ks: Float[Tensor, "N 3 3"],
 ) -> float:
     """Median support over all pixels with a rendered depth (1.0 when none has one)."""
-    values = view_support(depth > 0, depth, viewmats, cams_to_world_cv, Ks)
-    return float(values.median()) if len(values) else 1.0
+    return relative_support(depth > 0, 1.0, depth, viewmats, cams_to_world_cv, Ks)
+
+
+def relative_support(pixels: Bool[Tensor, "N H W"], typical: float, depth: Float[Tensor, "N H W"],
+                     viewmats: Float[Tensor, "N 4 4"], cams_to_world_cv: Float[Tensor, "N 4 4"],
+                     Ks: Float[Tensor, "N 3 3"]) -> float:
+    """Median view support of ``pixels`` (an object's evidence) over the clip's ``typical`` support
+    (``view_support``); 1.0 when none of them has a static depth."""
+    values = view_support(pixels, depth, viewmats, cams_to_world_cv, Ks)
+    return float(values.median()) / max(typical, 1e-9) if len(values) else 1.0
