@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 
-from edygs_ns.model.dynamic_seeding import Seeds
-from edygs_ns.model.path_depth import path_depth, rescale, triangulate_path
+from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig, Seeds
+from edygs_ns.model.path_depth import clamped_factor, path_depth, rescale, triangulate_path
 from edygs_ns.model.rigid_track import RigidTrack, rigid_apply, rotation_matrices
 
 N = 40
@@ -81,3 +83,22 @@ def test_a_spinning_object_is_placed_by_the_point_that_moves_simply():
     assert found is not None and centre_only is not None
     assert abs(found.factor - 1 / 1.4) < 0.01 and found.residual < 0.01
     assert abs(centre_only.factor - 1 / 1.4) > 0.02 and centre_only.residual > 10 * found.residual
+
+
+def test_a_track_seeded_too_close_is_moved_back_out():
+    """Seeded in front of a smear the static phase left nearer than the background, an object sits
+    too close; its path says how much farther it is, and the default limits let it go there."""
+    eyes, truth = _eyes(TIMES), _object_path(TIMES)
+    ref = N // 2
+    too_close = eyes + 0.7 * (truth - eyes)
+    centre = too_close[ref]
+    track = RigidTrack(centre, torch.zeros(N, 3), too_close - centre, torch.zeros(N), iou=torch.ones(N))
+    fit = path_depth(track, 0.1, eyes, TIMES, turns=False)
+    assert fit is not None and abs(fit.factor - 1 / 0.7) < 1e-3
+    factor = clamped_factor(fit, DynamicSeedingConfig().path_depth_range)
+    assert abs(factor - 1 / 0.7) < 1e-3
+    seeds = Seeds(centre[None], torch.rand(1, 3), torch.full((1,), 0.01), centre)
+    moved, _ = rescale(track, seeds, eyes, ref, factor)
+    assert torch.allclose(moved.centre + moved.translations, truth, atol=1e-4)
+    # the guard still holds a runaway fit
+    assert clamped_factor(replace(fit, factor=50.0), DynamicSeedingConfig().path_depth_range) <= 4.0

@@ -78,8 +78,8 @@ class DynamicSeedingConfig:
     """seeds sit at this fraction of the static render's depth"""
     path_depth: bool = True
     """then move each tracked object to the depth where its path is a quadratic in time (model/path_depth.py)"""
-    path_depth_range: Suppress[Tuple[float, float]] = (0.25, 1.0)
-    """... by a factor on its distance clamped to this range (above 1: behind what it hides)"""
+    path_depth_range: Suppress[Tuple[float, float]] = (0.25, 2.0)
+    """... by a factor on its distance clamped to this range (a guard against runaway fits)"""
     path_depth_max_residual: Suppress[float] = 0.2
     """... if the fitted path passes within this many object sizes (RMS) of its lines of sight"""
     seed_shape: Suppress[Literal["cap", "flat"]] = "cap"

@@ -67,7 +67,7 @@ from scipy import ndimage
 from torch import Tensor
 
 from edygs_ns.model.dynamic_seeding import EIGHT_CONNECTED, DynamicSeedingConfig, Seeds, seed_gaussians
-from edygs_ns.model.path_depth import PathFit, path_depth, rescale
+from edygs_ns.model.path_depth import PathFit, clamped_factor, path_depth, rescale
 from edygs_ns.model.rigid_track import RigidTrack, RigidTrackConfig, coverage_seeds, spread, track_rigid
 from edygs_ns.model.view_support import relative_support, typical_support
 from edygs_ns.render.contract import RasterBackend
@@ -351,7 +351,7 @@ def initialise_motion(
         if seeding.path_depth:
             path = path_depth(track, float(spread(seeds.points, seeds.centre)), cams_to_world_cv[:, :3, 3], times, turns=rigid_fit)
         if path is not None and path.residual <= seeding.path_depth_max_residual:
-            factor = min(max(path.factor, seeding.path_depth_range[0]), seeding.path_depth_range[1])
+            factor = clamped_factor(path, seeding.path_depth_range)
             track, seeds = rescale(track, seeds, cams_to_world_cv[:, :3, 3], k, factor)
             path.applied = True
         own = evidence * track.footprints

@@ -151,6 +151,13 @@ def path_depth(track: RigidTrack, size: float, eyes: Float[Tensor, "N 3"], times
     return PathFit(float(factor[best]), float(relative[best]), points[best])
 
 
+def clamped_factor(fit: PathFit, limits: Tuple[float, float]) -> float:
+    """The fit's factor within ``limits`` (low, high): a guard against runaway fits. Not 1 on the
+    high side: the static render behind a mover holds the mover's own smear from the static phase,
+    nearer than the background, so the depth it was seeded at is no bound on how far it is."""
+    return min(max(fit.factor, limits[0]), limits[1])
+
+
 def rescale(track: RigidTrack, seeds: Seeds, eyes: Float[Tensor, "N 3"], ref: int, factor: float) -> Tuple[RigidTrack, Seeds]:
     """The track and its seeds ``factor`` times as far from the cameras: the seeds and the centre
     about the reference latent's camera, every latent's position about its own camera, the seeds'
