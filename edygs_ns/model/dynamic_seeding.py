@@ -80,7 +80,7 @@ class DynamicSeedingConfig:
     """then move each tracked object to the depth where its path is a quadratic in time (model/path_depth.py)"""
     path_depth_range: Suppress[Tuple[float, float]] = (0.25, 2.0)
     """... by a factor on its distance clamped to this range (a guard against runaway fits)"""
-    path_depth_max_residual: Suppress[float] = 0.2
+    path_depth_max_residual: Suppress[float] = 0.3
     """... if the fitted path passes within this many object sizes (RMS) of its lines of sight"""
     seed_shape: Suppress[Literal["cap", "flat"]] = "cap"
     """cap: a round cap towards the camera at the region's median depth; flat: per-pixel depth"""
