@@ -7,7 +7,7 @@ from dataclasses import replace
 import torch
 
 from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig, Seeds
-from edygs_ns.model.path_depth import clamped_factor, path_depth, rescale, triangulate_path
+from edygs_ns.model.path_depth import clamped_factor, path_depth, rescale, simplest_path, triangulate_path
 from edygs_ns.model.rigid_track import RigidTrack, rigid_apply, rotation_matrices
 
 N = 40
@@ -102,3 +102,34 @@ def test_a_track_seeded_too_close_is_moved_back_out():
     assert torch.allclose(moved.centre + moved.translations, truth, atol=1e-4)
     # the guard still holds a runaway fit
     assert clamped_factor(replace(fit, factor=50.0), DynamicSeedingConfig().path_depth_range) <= 4.0
+
+
+def _line_path(times: torch.Tensor) -> torch.Tensor:
+    """An object moving at constant velocity in front of the camera."""
+    return torch.stack([-0.5 + 1.0 * times, -0.2 + 0.1 * times, -2.0 + 0.3 * times], dim=-1)
+
+
+def _track(positions: torch.Tensor) -> RigidTrack:
+    centre = positions[N // 2]
+    return RigidTrack(centre, torch.zeros(N, 3), positions - centre, torch.zeros(N), iou=torch.ones(N))
+
+
+def test_a_noisy_straight_track_takes_the_straight_path():
+    """Tracking noise bends the quadratic fit and pulls its depth in towards the cameras; the
+    straight path fits the lines of sight about as well and keeps the true depth."""
+    eyes, truth = _eyes(TIMES), _line_path(TIMES)
+    noise = 0.01 * torch.randn(N, 3, generator=torch.Generator().manual_seed(0))  # a tenth of the object's size
+    track = _track(eyes + 1.4 * (truth - eyes) + noise)
+    quadratic = path_depth(track, 0.1, eyes, TIMES, turns=False)
+    assert quadratic is not None and abs(quadratic.factor - 1 / 1.4) > 0.2  # what the quadratic alone gets
+    fit = simplest_path(track, 0.1, eyes, TIMES, False, DynamicSeedingConfig().path_depth_line_ratio, 0.3)
+    assert fit is not None and fit.degree == 1
+    assert abs(fit.factor - 1 / 1.4) < 0.02
+    assert simplest_path(track, 0.1, eyes, TIMES, False, 0.0, 0.3).degree == 2  # ratio 0: the quadratic only
+
+
+def test_a_bending_track_keeps_the_quadratic_path():
+    eyes, truth = _eyes(TIMES), _object_path(TIMES)
+    track = _track(eyes + 1.4 * (truth - eyes))
+    fit = simplest_path(track, 0.1, eyes, TIMES, False, DynamicSeedingConfig().path_depth_line_ratio, 0.3)
+    assert fit is not None and fit.degree == 2 and abs(fit.factor - 1 / 1.4) < 1e-3

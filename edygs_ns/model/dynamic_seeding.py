@@ -77,11 +77,13 @@ class DynamicSeedingConfig:
     depth_scale: Suppress[float] = 0.9
     """seeds sit at this fraction of the static render's depth"""
     path_depth: bool = True
-    """then move each tracked object to the depth where its path is a quadratic in time (model/path_depth.py)"""
+    """then move each tracked object to the depth where its path is simplest in time (model/path_depth.py)"""
     path_depth_range: Suppress[Tuple[float, float]] = (0.25, 2.0)
     """... by a factor on its distance clamped to this range (a guard against runaway fits)"""
     path_depth_max_residual: Suppress[float] = 0.3
     """... if the fitted path passes within this many object sizes (RMS) of its lines of sight"""
+    path_depth_line_ratio: Suppress[float] = 1.5
+    """... a straight path instead when it passes within this times the quadratic's residual (0: quadratic only)"""
     seed_shape: Suppress[Literal["cap", "flat"]] = "cap"
     """cap: a round cap towards the camera at the region's median depth; flat: per-pixel depth"""
     coverage_times: Suppress[Tuple[float, ...]] = (0.0, 1.0)

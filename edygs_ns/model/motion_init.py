@@ -19,7 +19,8 @@ deformation's base motion (``deformation.RigidMotion``), and the mask-consistenc
 3. Each object gets its own seeds (a cap at its own median static depth), its own rigid track
    (``rigid_track.track_rigid``, which follows only the evidence near the object), then seeds and
    track together move to the depth at which the path of one of its points is a quadratic in
-   time (``path_depth``: the training views cannot tell the depth of an independent mover), its
+   time, or a straight line where that fits about as well (``path_depth.simplest_path``: the
+   training views cannot tell the depth of an independent mover), its
    coverage seeds and its own reach. A region is a mover only if its track holds: its evidence is found in
    at least ``min_presence`` of the latents and the tracked silhouette overlaps it (mean IoU at
    least ``min_object_iou``; scattered residual noise does neither), and no static point explains
@@ -67,7 +68,7 @@ from scipy import ndimage
 from torch import Tensor
 
 from edygs_ns.model.dynamic_seeding import EIGHT_CONNECTED, DynamicSeedingConfig, Seeds, seed_gaussians
-from edygs_ns.model.path_depth import PathFit, clamped_factor, path_depth, rescale
+from edygs_ns.model.path_depth import PathFit, clamped_factor, rescale, simplest_path
 from edygs_ns.model.rigid_track import RigidTrack, RigidTrackConfig, coverage_seeds, spread, track_rigid
 from edygs_ns.model.view_support import relative_support, typical_support
 from edygs_ns.render.contract import RasterBackend
@@ -99,7 +100,8 @@ class MotionObject:
         iou = self.track.iou[torch.isfinite(self.track.iou)] if self.track.iou is not None else torch.zeros(0)
         fit = f", in {len(iou)} latents, silhouette IoU {float(iou.mean()):.2f}" if len(iou) else ", in no latent"
         why = f"; {self.verdict}" if self.verdict and not self.moved else ""
-        depth = "" if self.path is None else (f", path depth x{self.path.factor:.2f} (off its lines of sight by "
+        shape = "straight" if self.path is not None and self.path.degree == 1 else "quadratic"
+        depth = "" if self.path is None else (f", path depth x{self.path.factor:.2f} ({shape}, off its lines of sight by "
                                                f"{self.path.residual:.2f} sizes{'' if self.path.applied else '; not applied'})")
         part = " (part of a region cut at a neck)" if self.cut else ""
         return f"latent {self.ref}{part}: {len(self.seeds.points)} seeds, moves {self.shift:.1f} radii in the image, turns {turn:.0f}°{fit}{depth}{why}"
@@ -349,7 +351,8 @@ def initialise_motion(
         rigid_fit = len(iou) > 0 and float(iou.mean()) >= seeding.min_object_iou
         path = None
         if seeding.path_depth:
-            path = path_depth(track, float(spread(seeds.points, seeds.centre)), cams_to_world_cv[:, :3, 3], times, turns=rigid_fit)
+            path = simplest_path(track, float(spread(seeds.points, seeds.centre)), cams_to_world_cv[:, :3, 3], times,
+                                 rigid_fit, seeding.path_depth_line_ratio, seeding.path_depth_max_residual)
         if path is not None and path.residual <= seeding.path_depth_max_residual:
             factor = clamped_factor(path, seeding.path_depth_range)
             track, seeds = rescale(track, seeds, cams_to_world_cv[:, :3, 3], k, factor)

@@ -16,7 +16,8 @@ minimises angles (an unweighted fit favours paths that hug the cameras, where ev
 passes). A turning object's tracked centre (the front of its seeds) wobbles about the point that
 moves simply (a ball's centre, an arm's hinge), so the fit is tried for a grid of body points and
 the best-fitting one is kept; its factor ``a`` is the median ratio of fitted to tracked distances.
-``rescale`` then applies the factor to the seeds and the track about each latent's camera
+The quadratic is the default path; a straight one is taken when it fits nearly as well
+(``simplest_path``: fewer coefficients follow less of the track's noise). ``rescale`` then applies the factor to the seeds and the track about each latent's camera
 centre, which leaves every training view's projection as it was.
 """
 
@@ -115,6 +116,7 @@ class PathFit:
     residual: float
     point: Tensor
     applied: bool = False
+    degree: int = 2
 
 
 def path_depth(track: RigidTrack, size: float, eyes: Float[Tensor, "N 3"], times: Float[Tensor, "N"],
@@ -148,7 +150,25 @@ def path_depth(track: RigidTrack, size: float, eyes: Float[Tensor, "N 3"], times
     best = int(torch.argmin(relative))
     if not bool(torch.isfinite(relative[best])):
         return None
-    return PathFit(float(factor[best]), float(relative[best]), points[best])
+    return PathFit(float(factor[best]), float(relative[best]), points[best], degree=degree)
+
+
+def simplest_path(track: RigidTrack, size: float, eyes: Float[Tensor, "N 3"], times: Float[Tensor, "N"], turns: bool,
+                  line_ratio: float, max_residual: float) -> Optional[PathFit]:
+    """The quadratic path's depth (``path_depth``), or the straight path's when that passes the
+    lines of sight within ``line_ratio`` times the quadratic's residual (and within
+    ``max_residual`` object sizes wherever the quadratic does). The quadratic's three extra
+    coefficients bend its path to follow the tracked centre's noise, and a noisy track pulls its
+    depth in towards the cameras (a path near them passes close to every ray); a mover whose path
+    is no straighter than that (a circle, a throw) still gets the quadratic. ``line_ratio`` 0:
+    the quadratic only."""
+    quad = path_depth(track, size, eyes, times, turns, degree=2)
+    if quad is None or line_ratio <= 0:
+        return quad
+    line = path_depth(track, size, eyes, times, turns, degree=1)
+    if line is None or line.residual > line_ratio * quad.residual:
+        return quad
+    return line if line.residual <= max_residual or quad.residual > max_residual else quad
 
 
 def clamped_factor(fit: PathFit, limits: Tuple[float, float]) -> float:
