@@ -17,14 +17,15 @@ passes). A turning object's tracked centre (the front of its seeds) wobbles abou
 moves simply (a ball's centre, an arm's hinge), so the fit is tried for a grid of body points and
 the best-fitting one is kept; its factor ``a`` is the median ratio of fitted to tracked distances.
 The quadratic is the default path; a straight one is taken when it fits nearly as well
-(``simplest_path``: fewer coefficients follow less of the track's noise). ``rescale`` then applies the factor to the seeds and the track about each latent's camera
-centre, which leaves every training view's projection as it was.
+(``simplest_path``: fewer coefficients follow less of the track's noise). ``rescale`` then
+applies the factor to the seeds and the track about each latent's camera centre, which leaves
+every training view's projection as it was.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Optional, Tuple
+from typing import Dict, Optional, Tuple
 
 import torch
 from jaxtyping import Float
@@ -129,9 +130,16 @@ def path_depth(track: RigidTrack, size: float, eyes: Float[Tensor, "N 3"], times
     spinning ball, the hinge of a swinging arm), else the centre. None with fewer than
     MIN_PATH_LATENTS latents where the track saw its object, a fit conditioned under MIN_CONDITION
     (the cameras' path does not decide the depth) or no positive distance."""
+    return path_fits(track, size, eyes, times, turns, (degree,))[degree]
+
+
+def path_fits(track: RigidTrack, size: float, eyes: Float[Tensor, "N 3"], times: Float[Tensor, "N"], turns: bool,
+              degrees: Tuple[int, ...]) -> Dict[int, Optional[PathFit]]:
+    """``path_depth`` for each of ``degrees``, the body points' lines of sight built once."""
+    fits: Dict[int, Optional[PathFit]] = {degree: None for degree in degrees}
     seen = track.seen().to(eyes.device)
     if int(seen.sum()) < MIN_PATH_LATENTS or size <= 0:
-        return None
+        return fits
     offsets = torch.zeros(1, 3, dtype=eyes.dtype, device=eyes.device)
     if turns:
         steps = torch.linspace(-POINT_REACH, POINT_REACH, POINT_STEPS, dtype=eyes.dtype, device=eyes.device) * size
@@ -140,17 +148,18 @@ def path_depth(track: RigidTrack, size: float, eyes: Float[Tensor, "N 3"], times
     rotations = rotation_matrices(track.rotvecs[seen])
     paths = rigid_apply(points, track.centre, rotations, track.translations[seen]).transpose(0, 1)  # [P, n, 3]
     rays = paths - eyes[seen]
-    distance, residual, condition = triangulate_path(eyes[seen], rays, times[seen].to(eyes.dtype), degree)
-    if condition < MIN_CONDITION:
-        return None
-    ratio = distance / rays.norm(dim=-1).clamp_min(1e-12)  # [P, n]
-    factor = ratio.median(dim=1).values
-    relative = residual / (factor.clamp_min(1e-12) * size)  # in sizes of the object at the fitted depth
-    relative = torch.where(factor > 0, relative, torch.full_like(relative, float("inf")))
-    best = int(torch.argmin(relative))
-    if not bool(torch.isfinite(relative[best])):
-        return None
-    return PathFit(float(factor[best]), float(relative[best]), points[best], degree=degree)
+    lengths = rays.norm(dim=-1).clamp_min(1e-12)  # [P, n] tracked distances
+    for degree in degrees:
+        distance, residual, condition = triangulate_path(eyes[seen], rays, times[seen].to(eyes.dtype), degree)
+        if condition < MIN_CONDITION:
+            continue
+        factor = (distance / lengths).median(dim=1).values
+        relative = residual / (factor.clamp_min(1e-12) * size)  # in sizes of the object at the fitted depth
+        relative = torch.where(factor > 0, relative, torch.full_like(relative, float("inf")))
+        best = int(torch.argmin(relative))
+        if bool(torch.isfinite(relative[best])):
+            fits[degree] = PathFit(float(factor[best]), float(relative[best]), points[best], degree=degree)
+    return fits
 
 
 def simplest_path(track: RigidTrack, size: float, eyes: Float[Tensor, "N 3"], times: Float[Tensor, "N"], turns: bool,
@@ -162,11 +171,9 @@ def simplest_path(track: RigidTrack, size: float, eyes: Float[Tensor, "N 3"], ti
     depth in towards the cameras (a path near them passes close to every ray); a mover whose path
     is no straighter than that (a circle, a throw) still gets the quadratic. ``line_ratio`` 0:
     the quadratic only."""
-    quad = path_depth(track, size, eyes, times, turns, degree=2)
-    if quad is None or line_ratio <= 0:
-        return quad
-    line = path_depth(track, size, eyes, times, turns, degree=1)
-    if line is None or line.residual > line_ratio * quad.residual:
+    fits = path_fits(track, size, eyes, times, turns, (2,) if line_ratio <= 0 else (2, 1))
+    quad, line = fits[2], fits.get(1)
+    if quad is None or line is None or line.residual > line_ratio * quad.residual:
         return quad
     return line if line.residual <= max_residual or quad.residual > max_residual else quad
 
