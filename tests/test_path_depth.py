@@ -7,7 +7,7 @@ from dataclasses import replace
 import torch
 
 from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig, Seeds
-from edygs_ns.model.path_depth import clamped_factor, path_depth, rescale, simplest_path, triangulate_path
+from edygs_ns.model.path_depth import clamped_factor, latent_factors, path_depth, rescale, simplest_path, triangulate_path
 from edygs_ns.model.rigid_track import RigidTrack, rigid_apply, rotation_matrices
 
 N = 40
@@ -133,3 +133,42 @@ def test_a_bending_track_keeps_the_quadratic_path():
     track = _track(eyes + 1.4 * (truth - eyes))
     fit = simplest_path(track, 0.1, eyes, TIMES, False, DynamicSeedingConfig().path_depth_line_ratio, 0.3)
     assert fit is not None and fit.degree == 2 and abs(fit.factor - 1 / 1.4) < 1e-3
+
+
+def test_a_straight_path_corrects_the_depths_an_image_size_got_wrong():
+    """A deforming object's image size changes with its shape, and the tracker reads that as
+    depth: every latent off by its own factor. On a straight path each latent moves the
+    configured share (geometric) of the way onto the path's distance; a latent the track did not
+    see takes its nearest seen neighbour's factor."""
+    eyes, truth = _eyes(TIMES), _line_path(TIMES)
+    wrong = 1.4 * (1.0 + 0.3 * torch.sin(2.0 * torch.pi * TIMES))  # per-latent depth error of the tracker
+    track = _track(eyes + wrong[:, None] * (truth - eyes))
+    track.iou[-3:] = float("nan")  # not seen at the end of the clip
+    limits = DynamicSeedingConfig().path_depth_range
+    fit = simplest_path(track, 0.1, eyes, TIMES, False, DynamicSeedingConfig().path_depth_line_ratio, 0.3)
+    assert fit is not None and fit.degree == 1 and fit.residual < 1e-3
+    seen = torch.isfinite(track.iou)
+    assert torch.allclose(fit.ratios[seen], 1.0 / wrong[seen], rtol=1e-3) and bool(fit.ratios[~seen].isnan().all())
+    points = Seeds(track.centre[None], torch.rand(1, 3), torch.full((1,), 0.01), track.centre)
+
+    def log_error(follow: float) -> torch.Tensor:
+        factors = latent_factors(fit, limits, follow, TIMES)
+        moved, _ = rescale(track, points, eyes, N // 2, factors)
+        return ((moved.centre + moved.translations - eyes).norm(dim=-1) / (truth - eyes).norm(dim=-1)).log().abs()
+
+    one, half, whole = log_error(0.0), log_error(0.5), log_error(1.0)
+    assert float(one[seen].max()) > 0.2  # one factor keeps the tracker's latent-to-latent errors
+    assert torch.allclose(half[seen], 0.5 * (wrong[seen].log() - wrong[seen].log().median()).abs(), atol=2e-3)
+    assert float(whole[seen].max()) < 2e-3
+    assert torch.allclose(latent_factors(fit, limits, 1.0, TIMES)[-3:], latent_factors(fit, limits, 1.0, TIMES)[-4])
+
+
+def test_a_curved_path_moves_every_latent_by_one_factor():
+    """A quadratic is a loose model of a curve (a circle, a swing): the tracker's own
+    latent-to-latent depth is kept, whatever the follow share."""
+    eyes, truth = _eyes(TIMES), _object_path(TIMES)
+    track = _track(eyes + 1.4 * (1.0 + 0.05 * torch.sin(2.0 * torch.pi * TIMES))[:, None] * (truth - eyes))
+    fit = path_depth(track, 0.1, eyes, TIMES, turns=False)
+    assert fit is not None and fit.degree == 2
+    factors = latent_factors(fit, DynamicSeedingConfig().path_depth_range, 0.5, TIMES)
+    assert torch.allclose(factors, torch.full((N,), clamped_factor(fit, DynamicSeedingConfig().path_depth_range)))

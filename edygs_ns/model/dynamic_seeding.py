@@ -84,6 +84,8 @@ class DynamicSeedingConfig:
     """... if the fitted path passes within this many object sizes (RMS) of its lines of sight"""
     path_depth_line_ratio: Suppress[float] = 1.5
     """... a straight path instead when it passes within this times the quadratic's residual (0: quadratic only)"""
+    path_depth_follow: Suppress[float] = 0.5
+    """on a straight path, each latent's distance moved this share (geometric) onto the path's own (0: one factor)"""
     seed_shape: Suppress[Literal["cap", "flat"]] = "cap"
     """cap: a round cap towards the camera at the region's median depth; flat: per-pixel depth"""
     coverage_times: Suppress[Tuple[float, ...]] = (0.0, 1.0)

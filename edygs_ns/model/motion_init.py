@@ -68,7 +68,7 @@ from scipy import ndimage
 from torch import Tensor
 
 from edygs_ns.model.dynamic_seeding import EIGHT_CONNECTED, DynamicSeedingConfig, Seeds, seed_gaussians
-from edygs_ns.model.path_depth import PathFit, clamped_factor, rescale, simplest_path
+from edygs_ns.model.path_depth import PathFit, latent_factors, rescale, simplest_path
 from edygs_ns.model.rigid_track import RigidTrack, RigidTrackConfig, coverage_seeds, spread, track_rigid
 from edygs_ns.model.view_support import relative_support, typical_support
 from edygs_ns.render.contract import RasterBackend
@@ -95,6 +95,13 @@ class MotionObject:
         """Mean distance of the seeds from the track's centre, world units (the unit of the shifts)."""
         return float((self.seeds.points - self.track.centre).norm(dim=-1).mean())
 
+    def _applied(self) -> str:
+        factors = None if self.path is None else self.path.applied
+        if factors is None:
+            return "; not applied"
+        low, high = float(factors.min()), float(factors.max())
+        return f"; latents x{low:.2f}-{high:.2f}" if high - low >= 0.005 else ""
+
     def summary(self) -> str:
         turn = float(self.track.rotvecs.norm(dim=-1).max()) * 180.0 / torch.pi
         iou = self.track.iou[torch.isfinite(self.track.iou)] if self.track.iou is not None else torch.zeros(0)
@@ -102,7 +109,7 @@ class MotionObject:
         why = f"; {self.verdict}" if self.verdict and not self.moved else ""
         shape = "straight" if self.path is not None and self.path.degree == 1 else "quadratic"
         depth = "" if self.path is None else (f", path depth x{self.path.factor:.2f} ({shape}, off its lines of sight by "
-                                               f"{self.path.residual:.2f} sizes{'' if self.path.applied else '; not applied'})")
+                                               f"{self.path.residual:.2f} sizes{self._applied()})")
         part = " (part of a region cut at a neck)" if self.cut else ""
         return f"latent {self.ref}{part}: {len(self.seeds.points)} seeds, moves {self.shift:.1f} radii in the image, turns {turn:.0f}°{fit}{depth}{why}"
 
@@ -354,9 +361,8 @@ def initialise_motion(
             path = simplest_path(track, float(spread(seeds.points, seeds.centre)), cams_to_world_cv[:, :3, 3], times,
                                  rigid_fit, seeding.path_depth_line_ratio, seeding.path_depth_max_residual)
         if path is not None and path.residual <= seeding.path_depth_max_residual:
-            factor = clamped_factor(path, seeding.path_depth_range)
-            track, seeds = rescale(track, seeds, cams_to_world_cv[:, :3, 3], k, factor)
-            path.applied = True
+            path.applied = latent_factors(path, seeding.path_depth_range, seeding.path_depth_follow, times)
+            track, seeds = rescale(track, seeds, cams_to_world_cv[:, :3, 3], k, path.applied)
         own = evidence * track.footprints
         extra = coverage_seeds(track, seeds.points, seeds.radii, own, depth, latent, Ks, cams_to_world_cv, times, k, seeding)
         points = torch.cat([seeds.points, extra.points])

@@ -20,12 +20,18 @@ The quadratic is the default path; a straight one is taken when it fits nearly a
 (``simplest_path``: fewer coefficients follow less of the track's noise). ``rescale`` then
 applies the factor to the seeds and the track about each latent's camera centre, which leaves
 every training view's projection as it was.
+
+One factor keeps the tracker's latent-to-latent depth changes, which come from the object's image
+size: right for a rigid object, wrong for one whose size in the image changes with its shape. A
+straight path is a strong model of where the object is at each instant, a quadratic a loose one
+for a curve (a circle, a swing): so on a straight path each latent's distance goes part of the
+way onto the path's own (``latent_factors``), on a curved one the factor is the same for all.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Dict, Optional, Tuple
+from typing import Dict, Optional, Tuple, Union
 
 import torch
 from jaxtyping import Float
@@ -110,14 +116,17 @@ def triangulate_path(origins: Float[Tensor, "N 3"], directions: Float[Tensor, "*
 class PathFit:
     """The depth a tracked object's path gives: ``factor`` on its distance from the cameras, the
     fitted path's RMS distance from its lines of sight in object sizes (``residual``), and the
-    body point whose path was fitted (``point``, canonical frame, world units); ``applied``:
-    whether the motion initialisation moved the object by it."""
+    body point whose path was fitted (``point``, canonical frame, world units), the path's
+    polynomial ``degree``, every latent's fitted over tracked distance (``ratios``, [N], NaN where
+    the track did not see the object; ``factor`` is their median); ``applied``: the factors
+    [N] the motion initialisation moved the object by, None if it did not."""
 
     factor: float
     residual: float
     point: Tensor
-    applied: bool = False
+    ratios: Tensor
     degree: int = 2
+    applied: Optional[Tensor] = None
 
 
 def path_depth(track: RigidTrack, size: float, eyes: Float[Tensor, "N 3"], times: Float[Tensor, "N"],
@@ -158,7 +167,9 @@ def path_fits(track: RigidTrack, size: float, eyes: Float[Tensor, "N 3"], times:
         relative = torch.where(factor > 0, relative, torch.full_like(relative, float("inf")))
         best = int(torch.argmin(relative))
         if bool(torch.isfinite(relative[best])):
-            fits[degree] = PathFit(float(factor[best]), float(relative[best]), points[best], degree=degree)
+            ratios = torch.full(seen.shape, float("nan"), dtype=eyes.dtype, device=eyes.device)
+            ratios[seen] = (distance[best] / lengths[best]).to(eyes.dtype)
+            fits[degree] = PathFit(float(factor[best]), float(relative[best]), points[best], ratios, degree)
     return fits
 
 
@@ -185,13 +196,33 @@ def clamped_factor(fit: PathFit, limits: Tuple[float, float]) -> float:
     return min(max(fit.factor, limits[0]), limits[1])
 
 
-def rescale(track: RigidTrack, seeds: Seeds, eyes: Float[Tensor, "N 3"], ref: int, factor: float) -> Tuple[RigidTrack, Seeds]:
-    """The track and its seeds ``factor`` times as far from the cameras: the seeds and the centre
-    about the reference latent's camera, every latent's position about its own camera, the seeds'
-    radii scaled alike (every latent's view of the object unchanged). Rotations stay as they are."""
-    origin = eyes[ref]
+def latent_factors(fit: PathFit, limits: Tuple[float, float], follow: float,
+                   times: Float[Tensor, "N"]) -> Float[Tensor, "N"]:
+    """Factor on every latent's distance: the fit's (``clamped_factor``) on a curved path; on a
+    straight one each latent's moved ``follow`` of the way (geometrically) onto the path's own
+    distance, within ``limits`` (a latent where the track did not see the object takes the
+    factor of the nearest one in time that it did)."""
+    base = clamped_factor(fit, limits)
+    factors = torch.full(fit.ratios.shape, base, dtype=fit.ratios.dtype, device=fit.ratios.device)
+    good = torch.isfinite(fit.ratios) & (fit.ratios > 0)
+    if fit.degree != 1 or follow <= 0 or not bool(good.any()):
+        return factors
+    factors[good] = (base * (fit.ratios[good] / fit.factor) ** follow).clamp(*limits)
+    stamps = times.to(fit.ratios.device, fit.ratios.dtype)
+    nearest = (stamps[:, None] - stamps[good][None, :]).abs().argmin(dim=1)  # [N] into the good latents
+    return torch.where(good, factors, factors[good][nearest])
+
+
+def rescale(track: RigidTrack, seeds: Seeds, eyes: Float[Tensor, "N 3"], ref: int,
+            factor: Union[float, Float[Tensor, "N"]]) -> Tuple[RigidTrack, Seeds]:
+    """The track and its seeds ``factor`` (one, or one per latent) times as far from the cameras:
+    the seeds and the centre about the reference latent's camera by its factor, every latent's
+    position about its own camera by its own, the seeds' radii scaled alike (every latent's view
+    of the object unchanged). Rotations stay as they are."""
+    factors = torch.as_tensor(factor, dtype=eyes.dtype, device=eyes.device).expand(eyes.shape[0])
+    origin, factor = eyes[ref], float(factors[ref])
     centre = origin + factor * (track.centre - origin)
-    positions = eyes + factor * (track.centre + track.translations - eyes)
+    positions = eyes + factors[:, None] * (track.centre + track.translations - eyes)
     scaled = replace(track, centre=centre, translations=positions - centre)
     points = origin + factor * (seeds.points - origin)
     return scaled, Seeds(points, seeds.colors, seeds.radii * factor, centre)
