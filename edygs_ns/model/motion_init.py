@@ -20,7 +20,8 @@ deformation's base motion (``deformation.RigidMotion``), and the mask-consistenc
    (``rigid_track.track_rigid``, which follows only the evidence near the object), then seeds and
    track together move to the depth at which the path of one of its points is a quadratic in
    time, or a straight line where that fits about as well (``path_depth.simplest_path``: the
-   training views cannot tell the depth of an independent mover), its
+   training views cannot tell the depth of an independent mover; on a straight line each latent
+   goes part of the way onto the line's own distance, ``path_depth.latent_factors``), its
    coverage seeds and its own reach. A region is a mover only if its track holds: its evidence is found in
    at least ``min_presence`` of the latents and the tracked silhouette overlaps it (mean IoU at
    least ``min_object_iou``; scattered residual noise does neither), and no static point explains
