@@ -220,9 +220,9 @@ def rescale(track: RigidTrack, seeds: Seeds, eyes: Float[Tensor, "N 3"], ref: in
     position about its own camera by its own, the seeds' radii scaled alike (every latent's view
     of the object unchanged). Rotations stay as they are."""
     factors = torch.as_tensor(factor, dtype=eyes.dtype, device=eyes.device).expand(eyes.shape[0])
-    origin, factor = eyes[ref], float(factors[ref])
-    centre = origin + factor * (track.centre - origin)
+    origin, at_ref = eyes[ref], float(factors[ref])
+    centre = origin + at_ref * (track.centre - origin)
     positions = eyes + factors[:, None] * (track.centre + track.translations - eyes)
     scaled = replace(track, centre=centre, translations=positions - centre)
-    points = origin + factor * (seeds.points - origin)
-    return scaled, Seeds(points, seeds.colors, seeds.radii * factor, centre)
+    points = origin + at_ref * (seeds.points - origin)
+    return scaled, Seeds(points, seeds.colors, seeds.radii * at_ref, centre)
