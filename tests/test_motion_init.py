@@ -212,6 +212,10 @@ def test_a_big_object_need_not_travel_its_radius():
     assert strays_far(half + 0.5, radius_px=14.0, width=128, seeding=cfg) and not strays_far(half - 0.5, radius_px=14.0, width=128, seeding=cfg)
     # a region kept on its presence alone (poor rigid fit) must stray a whole radius (up to the cap)
     assert not strays_far(half + 0.5, radius_px=14.0, width=128, seeding=cfg, radii=cfg.steady_shift)
+    # a rigid silhouette held through most of the clip needs only the floor, whatever its size
+    floor = cfg.still_shift_fraction * 128
+    assert strays_far(floor + 0.5, radius_px=30.0, width=128, seeding=cfg, held=True)
+    assert not strays_far(floor - 0.5, radius_px=30.0, width=128, seeding=cfg, held=True)
 
 
 def test_verdict_names_the_first_failed_test():

@@ -129,7 +129,8 @@ class DynamicSeedingConfig:
     still_shift_fraction: Suppress[float] = 0.05
     """... and at least this fraction of the image width"""
     still_shift_cap: float = 0.07
-    """... but need not exceed this fraction of the image width"""
+    """... but need not exceed this fraction of the image width (only the floor above when the rigid
+    silhouette held through ``steady_presence`` of the latents)"""
     min_presence: Suppress[float] = 0.4
     """a mover's evidence is found in at least this share of the latents"""
     min_object_iou: Suppress[float] = 0.3

@@ -27,8 +27,10 @@ deformation's base motion (``deformation.RigidMotion``), and the mask-consistenc
    least ``min_object_iou``; scattered residual noise does neither), and no static point explains
    the track: wherever on the reference latent's ray through the region a still point is put (the
    static depth may be wrong), the tracked centre strays from it by ``still_shift`` of the region's
-   radius (at least ``still_shift_fraction``, at most ``still_shift_cap`` of the image width) in
-   some latent, and its evidence lies where the training views see the static scene about as often
+   radius (at least ``still_shift_fraction``, at most ``still_shift_cap`` of the image width; only
+   ``still_shift_fraction`` when its rigid silhouette held through ``steady_presence`` of the
+   latents: such a track does not slide about inside loose evidence, and a large object rolls less
+   than its size) in some latent, and its evidence lies where the training views see the static scene about as often
    as they see the clip's typical pixel (``min_view_support``, ``view_support``: where few views
    saw it, e.g. past the path's end or at the frame's edge, the static model is poorly fitted and
    its residual is no motion). A region followed
@@ -238,17 +240,24 @@ def unexplained_shift(track: RigidTrack, ref: int, viewmats: Float[Tensor, "N 4 
     return best
 
 
-def needed_shift(radius_px: float, width: int, seeding: DynamicSeedingConfig, radii: Optional[float] = None) -> float:
+def needed_shift(radius_px: float, width: int, seeding: DynamicSeedingConfig, radii: Optional[float] = None,
+                 held: bool = False) -> float:
     """The unexplained shift (pixels) that makes a region of radius ``radius_px`` (pixels) a mover:
     ``radii`` (default ``still_shift``) of its radius, at least ``still_shift_fraction`` and at most
-    ``still_shift_cap`` of the width."""
+    ``still_shift_cap`` of the width; only ``still_shift_fraction`` of the width for a region whose
+    rigid silhouette ``held`` through ``steady_presence`` of the latents (a track that cannot slide
+    about inside loose evidence: a large, slow object)."""
+    floor = seeding.still_shift_fraction * width
+    if held:
+        return floor
     needed = min((seeding.still_shift if radii is None else radii) * radius_px, seeding.still_shift_cap * width)
-    return max(needed, seeding.still_shift_fraction * width)
+    return max(needed, floor)
 
 
-def strays_far(shift_px: float, radius_px: float, width: int, seeding: DynamicSeedingConfig, radii: Optional[float] = None) -> bool:
+def strays_far(shift_px: float, radius_px: float, width: int, seeding: DynamicSeedingConfig, radii: Optional[float] = None,
+               held: bool = False) -> bool:
     """Whether a track's unexplained shift (pixels) makes its region a mover (``needed_shift``)."""
-    return shift_px >= needed_shift(radius_px, width, seeding, radii)
+    return shift_px >= needed_shift(radius_px, width, seeding, radii, held)
 
 
 def verdict(presence: float, mean_iou: float, rigid_fit: bool, steady: bool, shift_px: float, needed_px: float,
@@ -375,7 +384,8 @@ def initialise_motion(
         mean_iou = float(iou.mean()) if len(iou) else 0.0
         # a region followed through most of the clip is real even when one rigid silhouette fits it
         # poorly (a deforming or articulated object): its track then only carries it, see below
-        needed_px = needed_shift(radius_px, width, seeding, seeding.still_shift if rigid_fit else seeding.steady_shift)
+        held = rigid_fit and presence >= seeding.steady_presence  # no track sliding inside loose evidence
+        needed_px = needed_shift(radius_px, width, seeding, seeding.still_shift if rigid_fit else seeding.steady_shift, held)
         # a mover found in this same latent is where its footprint is: a separate region beside it
         # there is another object, even inside its claimed zone
         zones = [o.track.footprints if o.ref == k else o.track.claims for o in found_before if o.moved]
