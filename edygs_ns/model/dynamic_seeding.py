@@ -129,8 +129,10 @@ class DynamicSeedingConfig:
     still_shift_fraction: Suppress[float] = 0.05
     """... and at least this fraction of the image width"""
     still_shift_cap: float = 0.07
-    """... but need not exceed this fraction of the image width (only the floor above when the rigid
-    silhouette held through ``steady_presence`` of the latents)"""
+    """... but need not exceed this fraction of the image width"""
+    held_presence: Suppress[float] = 0.75
+    """a region whose rigid silhouette fits in this share of the latents needs only the floor
+    (``still_shift_fraction``; above 1: never)"""
     min_presence: Suppress[float] = 0.4
     """a mover's evidence is found in at least this share of the latents"""
     min_object_iou: Suppress[float] = 0.3

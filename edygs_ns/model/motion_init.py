@@ -28,7 +28,7 @@ deformation's base motion (``deformation.RigidMotion``), and the mask-consistenc
    the track: wherever on the reference latent's ray through the region a still point is put (the
    static depth may be wrong), the tracked centre strays from it by ``still_shift`` of the region's
    radius (at least ``still_shift_fraction``, at most ``still_shift_cap`` of the image width; only
-   ``still_shift_fraction`` when its rigid silhouette held through ``steady_presence`` of the
+   ``still_shift_fraction`` when its rigid silhouette held through ``held_presence`` of the
    latents: such a track does not slide about inside loose evidence, and a large object rolls less
    than its size) in some latent, and its evidence lies where the training views see the static scene about as often
    as they see the clip's typical pixel (``min_view_support``, ``view_support``: where few views
@@ -245,7 +245,7 @@ def needed_shift(radius_px: float, width: int, seeding: DynamicSeedingConfig, ra
     """The unexplained shift (pixels) that makes a region of radius ``radius_px`` (pixels) a mover:
     ``radii`` (default ``still_shift``) of its radius, at least ``still_shift_fraction`` and at most
     ``still_shift_cap`` of the width; only ``still_shift_fraction`` of the width for a region whose
-    rigid silhouette ``held`` through ``steady_presence`` of the latents (a track that cannot slide
+    rigid silhouette ``held`` through ``held_presence`` of the latents (a track that cannot slide
     about inside loose evidence: a large, slow object)."""
     floor = seeding.still_shift_fraction * width
     if held:
@@ -384,7 +384,7 @@ def initialise_motion(
         mean_iou = float(iou.mean()) if len(iou) else 0.0
         # a region followed through most of the clip is real even when one rigid silhouette fits it
         # poorly (a deforming or articulated object): its track then only carries it, see below
-        held = rigid_fit and presence >= seeding.steady_presence  # no track sliding inside loose evidence
+        held = rigid_fit and presence >= seeding.held_presence  # no track sliding inside loose evidence
         needed_px = needed_shift(radius_px, width, seeding, seeding.still_shift if rigid_fit else seeding.steady_shift, held)
         # a mover found in this same latent is where its footprint is: a separate region beside it
         # there is another object, even inside its claimed zone
