@@ -195,6 +195,20 @@ def test_a_still_region_is_no_mover_and_seeds_nothing():
     assert float(found.consistency.sum()) == 0.0
 
 
+def test_a_slow_object_held_in_every_latent_is_a_mover():
+    """A ball whose rigid silhouette holds in every latent, travelling less than its radius asks
+    (here a whole radius, 7 px, capped at 7 % of the width: 4.5 px) but more than the 5 % floor
+    (3.2 px), is a mover; without the held rule (``held_presence`` above 1) it is not."""
+    step = 3.9 / (REF * F / DEPTH)  # 3.9 px from the reference position at the clip's ends
+    latents, evidence, statics, depth, viewmats, c2w, Ks, times = _clip([[step, 0.0, 0.0]])
+    seeding = DynamicSeedingConfig(still_shift=1.0)
+    found = _initialise(latents, evidence, statics, depth, viewmats, c2w, Ks, times, seeding)
+    assert len(found.movers) == 1, [o.summary() for o in found.objects]
+    strict = _initialise(latents, evidence, statics, depth, viewmats, c2w, Ks, times,
+                         DynamicSeedingConfig(still_shift=1.0, held_presence=2.0))
+    assert not strict.movers and "strays" in strict.objects[0].verdict, [o.summary() for o in strict.objects]
+
+
 def test_no_evidence_no_objects():
     latents, _, statics, depth, viewmats, c2w, Ks, times = _clip([])
     found = _initialise(latents, torch.zeros(N, H, W), statics, depth, viewmats, c2w, Ks, times)
