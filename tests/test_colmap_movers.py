@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from edygs_ns.preprocess.colmap_movers import MoverTest, filtered_database, footprint, point_clusters
+from edygs_ns.preprocess.colmap_movers import MoverTest, Remap, choose, filtered_database, footprint, point_clusters
 
 
 def test_point_clusters_find_two_separate_groups_and_repeat() -> None:
@@ -86,6 +86,24 @@ def test_mover_test_message_says_what_it_did() -> None:
     stayed = MoverTest(14, 0.27, 0.26, 400, 2672, False, 0.83, 0.97, 1.15)
     assert stayed.message().startswith("mover test: no group") and "14 clusters" in stayed.message()
     assert "skipped" in MoverTest(0, 0.27, float("nan"), 0, 2, False, 0.85).message()
+
+
+def test_a_jumping_path_is_replaced_by_the_best_smooth_remap() -> None:
+    """Error and tracks decide first (most points among the passing re-maps); a first map whose
+    path jumps gives way to the lowest-error smooth re-map that beats its error, else it stands."""
+    remaps = [Remap(0.90, 1.05, 2000, 500, True), Remap(0.86, 1.10, 1500, 900, False), Remap(0.95, 0.98, 2300, 300, True)]
+    assert choose(remaps, 1.0, first_smooth=True, error_ratio=0.83, track_ratio=1.15) == (None, "")
+    assert choose(remaps, 1.0, first_smooth=False, error_ratio=0.83, track_ratio=1.15) == (0, "path")
+    assert choose(remaps[1:2], 1.0, first_smooth=False, error_ratio=0.83, track_ratio=1.15) == (None, ""), "no smooth re-map"
+    assert choose(remaps[2:], 0.9, first_smooth=False, error_ratio=0.83, track_ratio=1.15) == (None, ""), "not better"
+    passing = remaps + [Remap(0.80, 1.20, 1200, 1000, False), Remap(0.82, 1.16, 1800, 600, True)]
+    assert choose(passing, 1.0, first_smooth=False, error_ratio=0.83, track_ratio=1.15) == (4, "error")
+
+
+def test_mover_test_message_names_the_jump() -> None:
+    kept = MoverTest(14, 0.31, 0.27, 1012, 2575, True, 0.83, 1.11, 1.15, first_jumps=2, kept_for="path")
+    assert "path jumps (2 step(s))" in kept.message() and "1,012 of 2,575 points" in kept.message()
+    assert kept.as_dict()["kept_for"] == "path" and kept.as_dict()["first_map_jumps"] == 2
 
 
 def test_a_large_mover_no_longer_carries_colmaps_path(tmp_path: Path) -> None:

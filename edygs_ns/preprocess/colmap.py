@@ -374,7 +374,7 @@ def run_colmap(image_dir: Path, names: Sequence[str], work_dir: Path, config: Co
     model = largest_model(models)
     mover_test = None
     if model is not None and config.mover_clusters >= 2:
-        model, outcome = _mover_test(database, image_dir, work_dir, model, config, factor)
+        model, outcome = _mover_test(database, image_dir, work_dir, model, config, factor, names)
         mover_test = {**outcome.as_dict(), "message": outcome.message()}
     if factor > 1:
         shutil.rmtree(image_dir, ignore_errors=True)
@@ -409,7 +409,7 @@ def run_colmap(image_dir: Path, names: Sequence[str], work_dir: Path, config: Co
 
 
 def _mover_test(database: Path, image_dir: Path, work_dir: Path, model: "object", config: ColmapConfig,
-                factor: int) -> Tuple["object", MoverTest]:
+                factor: int, names: Sequence[str]) -> Tuple["object", MoverTest]:
     """The mover test (colmap_movers) on the first map, mapping quietly with the same options."""
     import pycolmap
 
@@ -423,7 +423,7 @@ def _mover_test(database: Path, image_dir: Path, work_dir: Path, model: "object"
     with progress_bar("COLMAP: mover test (maps without a cluster of points)", total) as advance:
         model, outcome = remap_without_movers(database, model, work_dir / MOVER_TEST_DIR, remap, config.mover_clusters,
                                               config.mover_error_ratio, config.mover_track_ratio,
-                                              config.mover_margin_px * factor, advance)
+                                              config.mover_margin_px * factor, names, advance)
     # errors in latent pixels, like the result's
     return model, replace(outcome, error_before=outcome.error_before / factor, best_error=outcome.best_error / factor)
 
