@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig
-from edygs_ns.model.motion_init import evidence_regions, initialise_motion, parts_diverge, split_at_necks, strays_far, verdict
+from edygs_ns.model.motion_init import (apart_latent, evidence_regions, initialise_motion, parts_diverge, split_at_necks, strays_far,
+                                        verdict)
 from edygs_ns.model.rigid_track import RigidTrack
 from edygs_ns.model.rigid_track import RigidTrackConfig
 from edygs_ns.render.torch_backend import rasterize_torch
@@ -174,14 +175,41 @@ def test_two_touching_objects_are_cut_apart_and_each_tracked():
     # the balls touch in the reference latent (one evidence region) and leave each other
     shifts = [[-0.12, 0.0, 0.0], [0.12, 0.04, 0.0]]
     clip, movers = _two_balls(shifts, apart=RADIUS * 1.05, regions=1)
-    assert all(o.cut and "cut at a neck" in o.summary() for o in movers)
+    assert all(o.cut == "neck" and "cut at a neck" in o.summary() for o in movers)
     for obj, shift in zip(movers, shifts):
         travelled = obj.track.translations[-1] - obj.track.translations[0]
         assert float(travelled[0]) * shift[0] > 0  # each body goes its own object's way
-    # without the cut, one track follows the joined region: one mover
-    whole = _initialise(*clip, DynamicSeedingConfig(neck_fraction=0.0))
+    # without the cut (nor the later look for latents where it falls apart), one track follows the
+    # joined region: one mover
+    whole = _initialise(*clip, DynamicSeedingConfig(neck_fraction=0.0, apart_presence=2.0))
     assert len(whole.movers) == 1, [o.summary() for o in whole.objects]
     assert not any(o.cut for o in whole.objects)
+
+
+def test_two_objects_overlapping_in_the_reference_latent_are_told_apart_where_they_part():
+    # the balls overlap in the reference latent (one round region, no neck) and leave each other:
+    # the joined region's mover is tracked again as two from a latent where they are apart
+    shifts = [[-0.12, 0.0, 0.0], [0.12, 0.04, 0.0]]
+    clip, movers = _two_balls(shifts, apart=RADIUS * 0.5, regions=1)
+    assert all(o.cut == "apart" and "apart in this latent" in o.summary() for o in movers)
+    assert all(o.ref != REF for o in movers)
+    for obj, shift in zip(movers, shifts):
+        travelled = obj.track.translations[-1] - obj.track.translations[0]
+        assert float(travelled[0]) * shift[0] > 0  # each body goes its own object's way
+    whole = _initialise(*clip, DynamicSeedingConfig(apart_presence=2.0))
+    assert len(whole.movers) == 1, [o.summary() for o in whole.objects]
+
+
+def test_apart_latent_picks_the_most_even_split_of_a_lasting_one():
+    zone = torch.zeros(5, 20, 30, dtype=torch.bool)
+    zone[:, 5:12, 5:12] = True  # 49 px in every latent
+    zone[1, 5:12, 20:24] = True  # a second part of 28 px
+    zone[3, 5:12, 18:25] = True  # ... of 49 px: the most even
+    zone[4, 0:2, 28:30] = True  # 4 px: too small to count
+    latent, parts = apart_latent(zone, min_pixels=10, min_share=0.25, min_latents=2)
+    assert latent == 3 and [int(p.sum()) for p in parts] == [49, 49]
+    assert apart_latent(zone, min_pixels=10, min_share=0.25, min_latents=3) is None, "apart in two latents only"
+    assert apart_latent(zone, min_pixels=10, min_share=0.45, min_latents=1)[0] == 3, "28 of 77 px is under 45 %"
 
 
 def test_a_still_region_is_no_mover_and_seeds_nothing():

@@ -116,6 +116,9 @@ class DynamicSeedingConfig:
     """... if every part holds at least this share of its pixels ..."""
     part_divergence: Suppress[float] = 1.0
     """... and the parts kept apart if their tracks part by more than this many times their summed sizes"""
+    apart_presence: Suppress[float] = 0.2
+    """a mover whose zone holds two such parts (outside the other movers) in this share of the latents
+    is tracked again as parts from the latent where they are most even (above 1: never)"""
     max_objects: Suppress[int] = 6
     """at most this many moving objects get seeds and a rigid body"""
     max_candidates: Suppress[int] = 10

@@ -61,8 +61,9 @@ track keeps training with the photometric losses.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
-from typing import Callable, List, Optional
+from typing import Callable, List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -91,7 +92,8 @@ class MotionObject:
     moved: bool
     verdict: str = ""
     path: Optional[PathFit] = None
-    cut: bool = False  # a part of a region cut at a neck (``split_at_necks``)
+    cut: str = ""  # "neck": a part of a region cut at a neck (``split_at_necks``); "apart": of a mover's
+    # region tracked again from a latent where it fell apart (``apart_latent``)
 
     @property
     def size(self) -> float:
@@ -113,7 +115,7 @@ class MotionObject:
         shape = "straight" if self.path is not None and self.path.degree == 1 else "quadratic"
         depth = "" if self.path is None else (f", path depth x{self.path.factor:.2f} ({shape}, off its lines of sight by "
                                                f"{self.path.residual:.2f} sizes{self._applied()})")
-        part = " (part of a region cut at a neck)" if self.cut else ""
+        part = {"neck": " (part of a region cut at a neck)", "apart": " (part of a mover's region, apart in this latent)"}.get(self.cut, "")
         return f"latent {self.ref}{part}: {len(self.seeds.points)} seeds, moves {self.shift:.1f} radii in the image, turns {turn:.0f}°{fit}{depth}{why}"
 
 
@@ -189,6 +191,27 @@ def parts_diverge(tracks: List[RigidTrack], sizes: List[float], divergence: floa
             if float(apart) > divergence * (sizes[a] + sizes[b]):
                 return True
     return False
+
+
+def apart_latent(zone: Bool[Tensor, "N H W"], min_pixels: int, min_share: float,
+                 min_latents: int) -> Optional[Tuple[int, List[Tensor]]]:
+    """Where a mover's evidence falls apart: ``zone`` is the evidence in its claimed zone outside the
+    other movers' footprints; a latent is split when it holds two or more regions of at least
+    ``min_pixels`` and ``min_share`` of that latent's zone each. With at least ``min_latents`` split
+    latents, (the one whose second-largest part is largest, its parts largest first); else None."""
+    best: Optional[Tuple[int, List[Tensor]]] = None
+    count, balance = 0, 0
+    for j in range(zone.shape[0]):
+        total = int(zone[j].sum())
+        if total < 2 * min_pixels:
+            continue
+        parts = [r for r in evidence_regions(zone[j].float(), min_pixels) if int(r.sum()) >= min_share * total]
+        if len(parts) < 2:
+            continue
+        count += 1
+        if int(parts[1].sum()) > balance:
+            best, balance = (j, parts), int(parts[1].sum())
+    return best if count >= min_latents else None
 
 
 def _next_region(evidence: Tensor, covered: Tensor, ref: int, min_pixels: int) -> Optional[tuple]:
@@ -419,9 +442,31 @@ def initialise_motion(
             if existing + len(result.movers) >= seeding.max_objects:
                 break
             result.objects.append(judge(k, part, seeds, track, found_before))
-            result.objects[-1].cut = len(pieces) > 1
+            result.objects[-1].cut = "neck" if len(pieces) > 1 else ""
             covered |= track.claims
             covered[k] &= ~others
+    # a mover whose region joined two objects in its latent (touching or crossing there): where
+    # they are apart, the evidence in its zone outside the other movers falls into parts; tracked
+    # from the latent where they are most even, parts whose tracks part are objects of their own
+    for mover in list(result.movers):
+        others = [o for o in result.movers if o is not mover]
+        outside = torch.stack([o.track.footprints for o in others] + earlier).any(dim=0) if others or earlier \
+            else torch.zeros_like(covered)
+        apart = apart_latent((evidence > 0.5) & mover.track.claims & ~outside, min_pixels, seeding.neck_min_share,
+                             int(math.ceil(seeding.apart_presence * n)))
+        if apart is None:
+            continue
+        j, parts = apart
+        tracked = [t for t in (seeded(j, part) for part in parts) if t is not None]
+        sizes = [float(spread(seeds.points, seeds.centre)) for _, seeds, _ in tracked]
+        if len(tracked) < 2 or not parts_diverge([track for _, _, track in tracked], sizes, seeding.part_divergence):
+            continue
+        judged = [judge(j, part, seeds, track, others) for part, seeds, track in tracked]
+        if any(o.moved for o in judged):
+            for o in judged:
+                o.cut = "apart"
+            at = result.objects.index(mover)
+            result.objects[at:at + 1] = judged
     movers = result.movers
     if movers:
         near = torch.stack([o.track.claims for o in movers]).any(dim=0)
