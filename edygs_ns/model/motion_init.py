@@ -15,7 +15,11 @@ deformation's base motion (``deformation.RigidMotion``), and the mask-consistenc
    ``neck_fraction`` of its radius) is cut there (``split_at_necks``: two objects touching in that
    latent, or an object beside a flaw of the static model); its parts are tracked apart, and kept
    apart when their tracks part by more than ``part_divergence`` times their summed sizes
-   (``parts_diverge``), else the whole region is tracked as one.
+   (``parts_diverge``), else the whole region is tracked as one. Two objects that overlap in that
+   latent (crossing there) show no neck; once every region is judged, a mover whose claimed zone,
+   outside the other movers' footprints, holds two or more evidence parts in ``apart_presence`` of
+   the latents is tracked again as those parts from the latent where they are most even
+   (``apart_latent``), and replaced by them when their tracks part as above.
 3. Each object gets its own seeds (a cap at its own median static depth), its own rigid track
    (``rigid_track.track_rigid``, which follows only the evidence near the object), then seeds and
    track together move to the depth at which the path of one of its points is a quadratic in
