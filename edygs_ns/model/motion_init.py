@@ -376,15 +376,21 @@ def initialise_motion(
         return region, seeds, track_rigid(seeds.points, seeds.colors, seeds.radii, seeds.centre, times, evidence, latent,
                                           statics, viewmats, Ks, k, backend, tracking)
 
+    def diverging(k: int, parts: List[Tensor]) -> Optional[List[tuple]]:
+        """The parts of latent k seeded and tracked, when at least two are and their tracks part
+        (``parts_diverge``); else None."""
+        tracked = [t for t in (seeded(k, part) for part in parts) if t is not None]
+        sizes = [float(spread(seeds.points, seeds.centre)) for _, seeds, _ in tracked]
+        apart = len(tracked) > 1 and parts_diverge([track for _, _, track in tracked], sizes, seeding.part_divergence)
+        return tracked if apart else None
+
     def tracked_parts(k: int, region: Tensor, min_pixels: int) -> List[tuple]:
         """The region cut at its necks when the parts' tracks move apart (two objects touching in
         latent k, or an object beside a flaw of the static model), else the whole region."""
         parts = split_at_necks(region, seeding.neck_fraction, min_pixels, seeding.neck_min_share) if seeding.neck_fraction > 0 else [region]
-        if len(parts) > 1:
-            tracked = [t for t in (seeded(k, part) for part in parts) if t is not None]
-            sizes = [float(spread(seeds.points, seeds.centre)) for _, seeds, _ in tracked]
-            if len(tracked) > 1 and parts_diverge([track for _, _, track in tracked], sizes, seeding.part_divergence):
-                return tracked
+        tracked = diverging(k, parts) if len(parts) > 1 else None
+        if tracked is not None:
+            return tracked
         whole = seeded(k, region)
         return [] if whole is None else [whole]
 
@@ -461,9 +467,8 @@ def initialise_motion(
         if apart is None:
             continue
         j, parts = apart
-        tracked = [t for t in (seeded(j, part) for part in parts) if t is not None]
-        sizes = [float(spread(seeds.points, seeds.centre)) for _, seeds, _ in tracked]
-        if len(tracked) < 2 or not parts_diverge([track for _, _, track in tracked], sizes, seeding.part_divergence):
+        tracked = diverging(j, parts)
+        if tracked is None:
             continue
         judged = [judge(j, part, seeds, track, others) for part, seeds, track in tracked]
         if any(o.moved for o in judged):
