@@ -458,11 +458,13 @@ def initialise_motion(
     # a mover whose region joined two objects in its latent (touching or crossing there): where
     # they are apart, the evidence in its zone outside the other movers falls into parts; tracked
     # from the latent where they are most even, parts whose tracks part are objects of their own
+    present = evidence > 0.5
     for mover in list(result.movers):
         others = [o for o in result.movers if o is not mover]
-        outside = torch.stack([o.track.footprints for o in others] + earlier).any(dim=0) if others or earlier \
-            else torch.zeros_like(covered)
-        apart = apart_latent((evidence > 0.5) & mover.track.claims & ~outside, min_pixels, seeding.neck_min_share,
+        outside = torch.zeros_like(present)
+        for zone in [o.track.footprints for o in others] + earlier:
+            outside |= zone
+        apart = apart_latent(present & mover.track.claims & ~outside, min_pixels, seeding.neck_min_share,
                              int(math.ceil(seeding.apart_presence * n)))
         if apart is None:
             continue

@@ -36,6 +36,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from edygs_ns.geometry import colmap_w2c_to_c2w_opengl
 from edygs_ns.preprocess.path_check import path_jumps
 
 #: Database file name inside each candidate's folder.
@@ -220,15 +221,10 @@ def choose(remaps: List[Remap], error_before: float, first_smooth: bool, error_r
 
 
 def camera_path(model: Any, names: Sequence[str]) -> np.ndarray:
-    """[M, 4, 4] camera-to-world matrices (COLMAP's axes) of the images of ``model`` that have a
+    """[M, 4, 4] camera-to-world matrices (the layout's axes) of the images of ``model`` that have a
     pose, in the order of ``names`` (time order)."""
     by_name = {image.name: image for image in model.images.values() if image.has_pose}
-    out = []
-    for name in names:
-        if name in by_name:
-            w2c = np.eye(4)
-            w2c[:3] = np.asarray(by_name[name].cam_from_world().matrix())
-            out.append(np.linalg.inv(w2c))
+    out = [colmap_w2c_to_c2w_opengl(np.asarray(by_name[name].cam_from_world().matrix())) for name in names if name in by_name]
     return np.array(out).reshape(-1, 4, 4)
 
 
@@ -294,7 +290,7 @@ def remap_without_movers(database: Path, model: Any, work: Path, remap: Callable
     finally:
         shutil.rmtree(work, ignore_errors=True)
     kept, why = choose(remaps, error_before, first_jumps == 0, error_ratio, track_ratio)
-    shown = kept if kept is not None else (min(range(len(remaps)), key=lambda i: remaps[i].error) if remaps else None)
+    shown = kept if kept is not None else min(range(len(remaps)), key=lambda i: remaps[i].error, default=None)
     error, removed, gain = ((remaps[shown].error, remaps[shown].removed, remaps[shown].gain) if shown is not None
                             else (float("nan"), 0, float("nan")))
     outcome = MoverTest(len(clusters), error_before, error, removed, len(point_ids), kept is not None, error_ratio, gain,
