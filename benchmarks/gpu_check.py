@@ -93,6 +93,11 @@ class GpuCheckConfig:
     """benchmark scene WIDTH HEIGHT FRAMES (default 400 400 60 on CUDA, 48 36 4 on CPU)"""
     eval_fit_steps: Optional[int] = None
     """edygs-eval's novel-view pose-fit steps (default 40 on CUDA, 0 on CPU)"""
+    bench_variants: List[str] = field(default_factory=lambda: [label for label, _, _ in BENCH_VARIANTS])
+    """benchmark runs, of: EDyGS, blurry D3DGS"""
+    bench_parallel: bool = False
+    """train the benchmark runs side by side, each in its own process (a host-bound GPU run leaves
+    the GPU and the other cores idle)"""
     deadline_s: float = 570.0
     """a stage (or bench run) that would start after this many seconds is skipped, not started"""
     extra_train_args: str = ""
@@ -396,7 +401,14 @@ def stage_bench(cfg: GpuCheckConfig, check: Check, child: Optional[subprocess.Po
     scene = make_scene(cfg.out / "bench_scene", size, cfg.device == "cpu")
     rows: Dict[str, Any] = {"scene": {"width": size[0], "height": size[1], "frames": size[2], "waited_seconds": round(time.time() - t0, 1)},
                             "iters": iters, "runs": {}}
-    for label, method, ablation in BENCH_VARIANTS:
+    variants = [v for v in BENCH_VARIANTS if v[0] in cfg.bench_variants]
+    if cfg.bench_parallel and len(variants) > 1:
+        rows["runs"] = bench_side_by_side(cfg, check, [label for label, _, _ in variants])
+        failed = [label for label, run in rows["runs"].items() if run.get("status") == "failed"]
+        if failed:
+            rows.update(status="failed", error="; ".join(f"{label}: {rows['runs'][label]['reason']}" for label in failed))
+        return rows
+    for label, method, ablation in variants:
         if check.elapsed() > cfg.deadline_s:
             rows["runs"][label] = {"status": "skipped", "reason": "deadline"}
             continue
@@ -413,6 +425,36 @@ def stage_bench(cfg: GpuCheckConfig, check: Check, child: Optional[subprocess.Po
         check.data["stages"]["bench"] = {"status": "running", **rows}
         check.write()
     return rows
+
+
+def bench_side_by_side(cfg: GpuCheckConfig, check: Check, labels: List[str]) -> Dict[str, Any]:
+    """Each benchmark run in a child ``gpu_check --stages bench --bench-variants LABEL`` of its own
+    (OUT/bench_LABEL, the scene linked in), all at once; their rows, merged. Logs: OUT/bench_LABEL.log."""
+    children = []
+    for label in labels:
+        sub = cfg.out / f"bench_{label.replace(' ', '_')}"
+        sub.mkdir(parents=True, exist_ok=True)
+        if not (sub / "bench_scene").exists():
+            (sub / "bench_scene").symlink_to((cfg.out / "bench_scene").resolve(), target_is_directory=True)
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--out", str(sub), "--device", cfg.device,
+               "--stages", "bench", "--bench-variants", label, "--bench-iters", str(cfg.size("bench_iters")),
+               "--bench-size", *map(str, cfg.size("bench_scene")), "--eval-fit-steps", str(cfg.size("eval_fit_steps")),
+               "--rasterizer", cfg.rasterizer, "--extra-train-args", cfg.extra_train_args,
+               "--deadline-s", str(max(0.0, cfg.deadline_s - check.elapsed()))]
+        if cfg.results is not None:
+            cmd += ["--results", str(cfg.results / sub.name)]
+        log = open(cfg.out / f"bench_{label.replace(' ', '_')}.log", "w")
+        children.append((label, sub, log, subprocess.Popen(cmd, cwd=REPO, stdout=log, stderr=subprocess.STDOUT)))
+    runs: Dict[str, Any] = {}
+    for label, sub, log, child in children:
+        child.wait()
+        log.close()
+        try:
+            stage = json.loads((sub / "gpu_check.json").read_text())["stages"]["bench"]
+            runs[label] = stage["runs"][label] if stage["status"] == "ok" else {"status": "failed", "reason": stage["error"]}
+        except (OSError, KeyError, ValueError) as err:
+            runs[label] = {"status": "failed", "reason": f"child exit {child.returncode}, no row ({err!r}); see {sub}.log"}
+    return runs
 
 
 # ----------------------------------------------------------------------------- report
@@ -457,8 +499,8 @@ def markdown(data: Dict[str, Any]) -> str:
                   "| run | train s | s/step | Gaussians | input PSNR | input SSIM | novel PSNR | novel PSNR (no fit) | mask IoU |",
                   "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
         for label, r in bench["runs"].items():
-            if r.get("status") == "skipped":
-                lines.append(f"| {label} | skipped ({r.get('reason')}) | | | | | | | |")
+            if r.get("status") in ("skipped", "failed"):
+                lines.append(f"| {label} | {r['status']} ({r.get('reason')}) | | | | | | | |")
                 continue
             lines.append(f"| {label} | {_fmt(r.get('train_seconds'), 1)} | {_fmt(r.get('seconds_per_step'), 4)} | "
                          f"{_fmt(r.get('gaussians_final'))} | {_fmt(r.get('input_psnr'))} | {_fmt(r.get('input_ssim'), 3)} | "

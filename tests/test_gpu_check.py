@@ -21,7 +21,7 @@ def test_short_run_shape_resets_after_the_switch_and_refines_after_it():
 
 def test_dry_mode_writes_json_and_markdown(tmp_path):
     cfg = gpu_check.GpuCheckConfig(out=tmp_path / "gc", device="cpu", train_iters=30, bench_iters=12,
-                                      results=tmp_path / "kept")
+                                      bench_parallel=True, results=tmp_path / "kept")
     data = gpu_check.main(cfg)
     out = tmp_path / "gc"
     written = json.loads((out / "gpu_check.json").read_text())
