@@ -439,7 +439,7 @@ def bench_side_by_side(cfg: GpuCheckConfig, check: Check, labels: List[str]) -> 
         cmd = [sys.executable, str(Path(__file__).resolve()), "--out", str(sub), "--device", cfg.device,
                "--stages", "bench", "--bench-variants", label, "--bench-iters", str(cfg.size("bench_iters")),
                "--bench-size", *map(str, cfg.size("bench_scene")), "--eval-fit-steps", str(cfg.size("eval_fit_steps")),
-               "--rasterizer", cfg.rasterizer, "--extra-train-args", cfg.extra_train_args,
+               "--rasterizer", cfg.rasterizer, f"--extra-train-args={cfg.extra_train_args}",
                "--deadline-s", str(max(0.0, cfg.deadline_s - check.elapsed()))]
         if cfg.results is not None:
             cmd += ["--results", str(cfg.results / sub.name)]
