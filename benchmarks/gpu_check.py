@@ -413,7 +413,7 @@ def stage_bench(cfg: GpuCheckConfig, check: Check, child: Optional[subprocess.Po
             rows["runs"][label] = {"status": "skipped", "reason": "deadline"}
             continue
         extra = ["--pipeline.model.ablation", ablation] if ablation else []
-        args = train_args(cfg, method, scene, cfg.out / "bench_runs", label.replace(" ", "_"), iters, extra)
+        args = train_args(cfg, method, scene, cfg.out / "bench_runs", _slug(label), iters, extra)
         probe: Dict[str, Any] = {}
         config = ns_train(args, probe)
         metrics = evaluate_run(config, config.parent / "eval", max_grids=1, method=label,
@@ -427,12 +427,17 @@ def stage_bench(cfg: GpuCheckConfig, check: Check, child: Optional[subprocess.Po
     return rows
 
 
+def _slug(label: str) -> str:
+    """A bench row's label as a file name part ("blurry D3DGS" -> "blurry_D3DGS")."""
+    return label.replace(" ", "_")
+
+
 def bench_side_by_side(cfg: GpuCheckConfig, check: Check, labels: List[str]) -> Dict[str, Any]:
     """Each benchmark run in a child ``gpu_check --stages bench --bench-variants LABEL`` of its own
     (OUT/bench_LABEL, the scene linked in), all at once; their rows, merged. Logs: OUT/bench_LABEL.log."""
     children = []
     for label in labels:
-        sub = cfg.out / f"bench_{label.replace(' ', '_')}"
+        sub = cfg.out / f"bench_{_slug(label)}"
         sub.mkdir(parents=True, exist_ok=True)
         if not (sub / "bench_scene").exists():
             (sub / "bench_scene").symlink_to((cfg.out / "bench_scene").resolve(), target_is_directory=True)
@@ -443,7 +448,7 @@ def bench_side_by_side(cfg: GpuCheckConfig, check: Check, labels: List[str]) -> 
                "--deadline-s", str(max(0.0, cfg.deadline_s - check.elapsed()))]
         if cfg.results is not None:
             cmd += ["--results", str(cfg.results / sub.name)]
-        log = open(cfg.out / f"bench_{label.replace(' ', '_')}.log", "w")
+        log = open(cfg.out / f"{sub.name}.log", "w")
         children.append((label, sub, log, subprocess.Popen(cmd, cwd=REPO, stdout=log, stderr=subprocess.STDOUT)))
     runs: Dict[str, Any] = {}
     for label, sub, log, child in children:
