@@ -43,3 +43,29 @@ def test_field_learns_a_time_dependent_offset():
         loss.backward()
         opt.step()
     assert error() < 0.05 * before
+
+
+def test_colour_head_starts_at_zero_and_is_absent_when_off():
+    from dataclasses import replace
+
+    means = torch.rand(6, 3)
+    assert DeformationField(SMALL).offsets(means, 0.2)[3] is None
+    colour = DeformationField(replace(SMALL, colour=True)).offsets(means, 0.2)[3]
+    assert colour.shape == (6, 3) and torch.count_nonzero(colour) == 0
+
+
+def test_a_checkpoint_without_the_colour_head_loads_with_a_zero_head():
+    from dataclasses import replace
+
+    torch.manual_seed(0)
+    old = DeformationField(SMALL)
+    state = old.state_dict()
+    new = DeformationField(replace(SMALL, colour=True))
+    with torch.no_grad():
+        new.head_colour.weight.fill_(1.0)  # so that loading must set it
+    new.prepare_load(state, "")
+    new.load_state_dict(state)
+    means = torch.rand(5, 3)
+    for a, b in zip(old.offsets(means, 0.7)[:3], new.offsets(means, 0.7)[:3]):
+        assert torch.equal(a, b)
+    assert torch.count_nonzero(new.offsets(means, 0.7)[3]) == 0

@@ -10,6 +10,7 @@ import torch
 from plyfile import PlyData
 from test_eval_cli import shared_tiny_run
 
+from edygs_ns.model.appearance import SH_C0
 from edygs_ns.model.deformation import DeformationConfig
 from edygs_ns.model.edygs_model import EdygsModelConfig
 from edygs_ns.scripts.export import MOTION_MASK_PROPERTY, baked_gaussians, export_gaussians
@@ -91,6 +92,25 @@ def test_baking_at_two_times_moves_only_the_deformed_gaussians():
     assert np.all(moved[N_STATIC:] > 1e-4)
     scales = lambda c: np.stack([c[f"scale_{i}"] for i in range(3)], 1)  # noqa: E731
     assert not np.allclose(scales(early)[N_STATIC:], scales(late)[N_STATIC:])
+
+
+def test_the_colour_offset_is_baked_into_the_dc_term_of_the_deformed_gaussians():
+    from dataclasses import replace
+
+    from edygs_ns.model.splat_export_view import bake_gaussians
+
+    plain = _model()
+    model = _model()
+    model.config.deformation = replace(model.config.deformation, colour=True)
+    model.deformation = type(model.deformation)(model.config.deformation)
+    model.deformation.load_state_dict(plain.deformation.state_dict(), strict=False)
+    with torch.no_grad():
+        model.deformation.head_colour.bias.copy_(torch.tensor([0.1, -0.05, 0.02]))
+    before, after = bake_gaussians(plain, 0.4), bake_gaussians(model, 0.4)
+    shift = (after["features_dc"] - before["features_dc"]) * SH_C0  # RGB units
+    assert torch.allclose(shift[:N_STATIC], torch.zeros(N_STATIC, 3))
+    assert torch.allclose(shift[N_STATIC:], torch.tensor([0.1, -0.05, 0.02]).expand(N_GAUSSIANS - N_STATIC, 3), atol=1e-3)
+    assert torch.equal(after["means"], before["means"])
 
 
 def test_time_outside_the_clip_is_rejected():

@@ -29,6 +29,8 @@ class DeformationConfig:
     """positional-encoding frequencies of the canonical position"""
     time_frequencies: int = 6
     """positional-encoding frequencies of the time"""
+    colour: bool = False
+    """also learn an RGB offset per Gaussian and time (added to its evaluated colour)"""
 
 
 def positional_encoding(x: Float[Tensor, "N D"], frequencies: int) -> Float[Tensor, "N D*(1+2F)"]:
@@ -60,15 +62,31 @@ class DeformationField(nn.Module):
         self.head_xyz = nn.Linear(config.width, 3)
         self.head_rot = nn.Linear(config.width, 4)
         self.head_scale = nn.Linear(config.width, 3)
-        for head in (self.head_xyz, self.head_rot, self.head_scale):
-            nn.init.zeros_(head.weight)
-            nn.init.zeros_(head.bias)
+        self.head_colour = nn.Linear(config.width, 3) if config.colour else None
+        for head in (self.head_xyz, self.head_rot, self.head_scale, self.head_colour):
+            if head is not None:
+                nn.init.zeros_(head.weight)
+                nn.init.zeros_(head.bias)
+
+    def prepare_load(self, state_dict: dict, prefix: str) -> None:
+        """Before ``load_state_dict``: a checkpoint from before the colour head gets the zero head
+        (no colour offset), so it renders as it was trained."""
+        if self.head_colour is not None:
+            for name, value in self.head_colour.state_dict().items():
+                state_dict.setdefault(f"{prefix}head_colour.{name}", torch.zeros_like(value))
 
     def forward(
         self, means: Float[Tensor, "N 3"], time: Union[float, Tensor]
     ) -> Tuple[Float[Tensor, "N 3"], Float[Tensor, "N 4"], Float[Tensor, "N 3"]]:
         """Offsets at ``time`` (normalised, a float or a one-element tensor kept on the device) for
         Gaussians centred at ``means`` (no gradient flows into means)."""
+        d_xyz, d_rot, d_scale, _ = self.offsets(means, time)
+        return d_xyz, d_rot, d_scale
+
+    def offsets(
+        self, means: Float[Tensor, "N 3"], time: Union[float, Tensor]
+    ) -> Tuple[Float[Tensor, "N 3"], Float[Tensor, "N 4"], Float[Tensor, "N 3"], Optional[Float[Tensor, "N 3"]]]:
+        """``forward``'s offsets and the RGB offset [N, 3] (None without ``config.colour``)."""
         means = means.detach()
         if isinstance(time, Tensor):
             t = time.detach().to(means.dtype).reshape(1, 1).expand(means.shape[0], 1)
@@ -83,7 +101,8 @@ class DeformationField(nn.Module):
             if i == self.config.skip_layer + 1:
                 h = torch.cat([h, encoded], dim=-1)
             h = torch.relu(layer(h))
-        return self.head_xyz(h), self.head_rot(h), self.head_scale(h)
+        colour = self.head_colour(h) if self.head_colour is not None else None
+        return self.head_xyz(h), self.head_rot(h), self.head_scale(h), colour
 
 
 def quat_from_rotvec(rotvec: Float[Tensor, "... 3"]) -> Float[Tensor, "... 4"]:

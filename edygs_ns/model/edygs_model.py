@@ -237,6 +237,7 @@ class EdygsModel(SplatExportView):
                 param = self.gauss_params[name]
                 param.data = torch.zeros(state_dict[key].shape, dtype=param.dtype, device=param.device)
         self.rigid_motion.prepare_load(state_dict, "rigid_motion.")
+        self.deformation.prepare_load(state_dict, "deformation.")
         self.exposure_cache.prepare_load(state_dict, "exposure_cache.")
         self.camera_optimizer.prepare_load(state_dict, "camera_optimizer.")
         if "static_masks" in state_dict:
@@ -533,14 +534,17 @@ class EdygsModel(SplatExportView):
             return mask.detach() >= self.config.deform_mask_threshold
         return torch.ones_like(mask, dtype=torch.bool)
 
-    def _offsets(self, means: Tensor, quats: Tensor, time: Union[float, Tensor]) -> Tuple[Tensor, Tensor, Tensor]:
-        """Offsets (Δμ [S,3], Δq [S,4], Δs [S,3]) of the Gaussians given: the deformation MLP plus
-        the rigid bodies' motion when some body moves (a host flag, model/deformation.py)."""
-        d_xyz, d_rot, d_scale = self.deformation(means, time)
+    def _offsets(
+        self, means: Tensor, quats: Tensor, time: Union[float, Tensor]
+    ) -> Tuple[Tensor, Tensor, Tensor, Optional[Tensor]]:
+        """Offsets (Δμ [S,3], Δq [S,4], Δs [S,3], Δrgb [S,3] or None) of the Gaussians given: the
+        deformation MLP plus the rigid bodies' motion when some body moves (a host flag,
+        model/deformation.py)."""
+        d_xyz, d_rot, d_scale, d_colour = self.deformation.offsets(means, time)
         if self.rigid_motion.active:
             rigid_xyz, rigid_rot = self.rigid_motion(means, quats, time)
             d_xyz, d_rot = d_xyz + rigid_xyz, d_rot + rigid_rot
-        return d_xyz, d_rot, d_scale
+        return d_xyz, d_rot, d_scale, d_colour
 
     def deformed_gaussians(
         self, time: Union[float, Tensor], deform: bool, subset: Optional[Tensor] = None
@@ -566,7 +570,9 @@ class EdygsModel(SplatExportView):
             return self._deform_masked(out, time)
         if subset is None:
             subset = self.gate_subset(mask)
-        d_xyz, d_rot, d_scale = self._offsets(means[subset], quats[subset], time)
+        d_xyz, d_rot, d_scale, d_colour = self._offsets(means[subset], quats[subset], time)
+        if d_colour is not None:
+            out["d_colour"] = torch.zeros_like(means).index_add(0, subset, d_colour)
         out["means"] = means.index_add(0, subset, d_xyz)
         out["quats"] = quats.index_add(0, subset, d_rot)
         out["scales"] = scales.index_add(0, subset, d_scale).clamp_min(MIN_DEFORMED_SCALE)
@@ -578,13 +584,23 @@ class EdygsModel(SplatExportView):
         deform_mask_threshold: the same result without the subset's size on the host."""
         means, quats, scales, mask = out["means"], out["quats"], out["scales"], out["mask"]
         selected = self.gate(mask)  # [N]
-        d_xyz, d_rot, d_scale = self._offsets(means, quats, time)
+        d_xyz, d_rot, d_scale, d_colour = self._offsets(means, quats, time)
         keep = selected[:, None]
+        if d_colour is not None:
+            out["d_colour"] = torch.where(keep, d_colour, torch.zeros_like(d_colour))
         d_xyz, d_rot, d_scale = (torch.where(keep, d, torch.zeros_like(d)) for d in (d_xyz, d_rot, d_scale))
         out["means"], out["quats"] = means + d_xyz, quats + d_rot
         out["scales"] = (scales + d_scale).clamp_min(MIN_DEFORMED_SCALE)
         out.update(d_xyz=d_xyz, d_rot=d_rot, d_scale=d_scale, deformed_mask=mask, deformed_weight=selected.to(mask.dtype))
         return out
+
+    @staticmethod
+    def _colours(coeffs: Tensor, gaussians: Dict[str, Tensor], camera_center: Tensor, sh_degree: int) -> Tensor:
+        """[N, 3] colours seen from ``camera_center``: the SH colour plus the deformation's RGB offset
+        where it has one."""
+        rgb = sh_to_rgb(coeffs, gaussians["means"], camera_center, sh_degree)
+        d_colour = gaussians.get("d_colour")
+        return rgb if d_colour is None else rgb + d_colour
 
     def render_cameras(self, camera: Cameras, deform: Optional[bool] = None) -> Dict[str, Tensor]:
         """Render C cameras in one rasteriser call; every output has a leading camera dimension
@@ -615,7 +631,7 @@ class EdygsModel(SplatExportView):
             subset = self.gate_subset(torch.sigmoid(self.gauss_params["mask_logit"]).squeeze(-1))
         gaussians = [self.deformed_gaussians(times[c], deform, subset) for c in range(n_cams)]
         features = torch.stack([
-            torch.cat([sh_to_rgb(coeffs, g["means"], c2w[c, :3, 3], sh_degree), g["mask"][:, None]], dim=-1)
+            torch.cat([self._colours(coeffs, g, c2w[c, :3, 3], sh_degree), g["mask"][:, None]], dim=-1)
             for c, g in enumerate(gaussians)
         ])  # [C, N, D]: the view-dependent colour and the motion mask
         if n_cams == 1 or not deform:  # one set of Gaussians for every camera

@@ -111,13 +111,16 @@ def bake_gaussians(model: torch.nn.Module, time: float) -> Dict[str, Tensor]:
     g: Dict[str, Tensor] = model.deformed_gaussians(float(time), deform=deform)  # type: ignore[operator]
     params = model.gauss_params
     n = g["means"].shape[0]
+    features_dc = params["features_dc"].detach().float().reshape(n, -1)
+    if "d_colour" in g:  # rgb = SH_C0 · dc + ... + 0.5: an RGB offset is offset / SH_C0 on dc
+        features_dc = features_dc + g["d_colour"].detach().float() / SH_C0
     return {
         "means": g["means"].detach().float(),
         "quats": torch.nn.functional.normalize(g["quats"].detach().float(), dim=-1),
         "log_scales": torch.log(g["scales"].detach().float().clamp_min(MIN_SCALE)),
-        # the deformation leaves opacity and colour alone: the stored values are exact
+        # the deformation leaves opacity alone; its colour offset, where it has one, goes into the DC term
         "opacity_logits": params["opacities"].detach().float().reshape(n, 1),
-        "features_dc": params["features_dc"].detach().float().reshape(n, -1),
+        "features_dc": features_dc,
         "features_rest": params["features_rest"].detach().float(),
         "mask": g["mask"].detach().float().reshape(n),
     }
