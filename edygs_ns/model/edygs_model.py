@@ -586,9 +586,13 @@ class EdygsModel(SplatExportView):
         selected = self.gate(mask)  # [N]
         d_xyz, d_rot, d_scale, d_colour = self._offsets(means, quats, time)
         keep = selected[:, None]
+
+        def kept(d: Tensor) -> Tensor:
+            return torch.where(keep, d, torch.zeros_like(d))
+
+        d_xyz, d_rot, d_scale = kept(d_xyz), kept(d_rot), kept(d_scale)
         if d_colour is not None:
-            out["d_colour"] = torch.where(keep, d_colour, torch.zeros_like(d_colour))
-        d_xyz, d_rot, d_scale = (torch.where(keep, d, torch.zeros_like(d)) for d in (d_xyz, d_rot, d_scale))
+            out["d_colour"] = kept(d_colour)
         out["means"], out["quats"] = means + d_xyz, quats + d_rot
         out["scales"] = (scales + d_scale).clamp_min(MIN_DEFORMED_SCALE)
         out.update(d_xyz=d_xyz, d_rot=d_rot, d_scale=d_scale, deformed_mask=mask, deformed_weight=selected.to(mask.dtype))
