@@ -14,7 +14,8 @@ objects, novel-view PSNR/SSIM with and without per-view pose fitting, mask IoU, 
 mask, ATE initial → refined and training seconds; the reference rows "EDI latent" and "blurry
 input" (those images scored against the same ground truth); and the done-means table.
 
-Layout of ``OUT``: ``PRESET/seedS/{raw,scene}`` (the scene) and ``PRESET/runs/seedS/METHOD/RUN``.
+Layout of ``OUT``: ``PRESET/seedS/{raw,scene}`` (the scene) and ``PRESET/runs/seedS/METHOD/RUN``
+(``PRESET/runs_trainT/...`` for a run with training seed T other than nerfstudio's 42).
 Scenes, finished runs (``train_seconds.txt`` next to ``config.yml``) and evaluations already there
 are reused, so the suite can run as several processes into one folder (e.g. one preset each)
 and a last call with ``--collect-only`` writes the combined tables without training
@@ -79,7 +80,9 @@ TARGET_NOVEL_OVER_BLURRY_INPUT = 1.5  # novel views without pose fitting - the b
 TARGET_STATIC_OVER_POSE = 0.0  # no motion: EDyGS - the edi-events-pose ablation ("no worse")
 STATIC_MASK_MEAN_MAX = 0.05  # no motion: mean rendered motion mask ("stays near 0")
 #: Row fields that are not numbers to average.
-ID_KEYS = ("preset", "seed", "motion")
+ID_KEYS = ("preset", "seed", "motion", "train_seed")
+#: nerfstudio's --machine.seed default: the training seed of a run trained without --train-seeds.
+DEFAULT_TRAIN_SEED = 42
 
 
 def scene_presets() -> Tuple[str, ...]:
@@ -102,6 +105,9 @@ class SuiteBenchConfig:
     """scene presets of edygs-synth"""
     seeds: List[int] = field(default_factory=lambda: [0, 1])
     """seeds per preset (textures, motion, camera path)"""
+    train_seeds: List[int] = field(default_factory=lambda: [DEFAULT_TRAIN_SEED])
+    """ns-train --machine.seed of the runs; several: every scene is trained once per seed and the
+    tables average them (a single run's spread is the training seed's as much as the method's)"""
     variants: List[str] = field(default_factory=lambda: list(SUITE_VARIANTS))
     """rows to run: labels of ablations.VARIANTS, or their ablation preset / method (full, paper, edygs-blurry, ...)"""
     iters: int = 3000
@@ -151,6 +157,18 @@ def motion_of(cfg: SuiteBenchConfig, preset: str, seed: int) -> Optional[str]:
 
 def scene_root(cfg: SuiteBenchConfig, preset: str, seed: int) -> Path:
     return cfg.out / preset / f"seed{seed}"
+
+
+def runs_root(cfg: SuiteBenchConfig, preset: str, train_seed: int) -> Path:
+    """Where the runs of ``preset`` with training seed ``train_seed`` go (see the layout above)."""
+    return cfg.out / preset / ("runs" if train_seed == DEFAULT_TRAIN_SEED else f"runs_train{train_seed}")
+
+
+def with_train_seed(run_cfg: SuiteBenchConfig, train_seed: int) -> SuiteBenchConfig:
+    """``run_cfg`` whose runs train with ``train_seed`` (its ns-train arguments as they are for 42)."""
+    if train_seed == DEFAULT_TRAIN_SEED:
+        return run_cfg
+    return dataclasses.replace(run_cfg, extra_train_args=f"{run_cfg.extra_train_args or ''} --machine.seed {train_seed}".strip())
 
 
 def synth_config(cfg: SuiteBenchConfig, preset: str, seed: int, raw: Path) -> SynthConfig:
@@ -337,7 +355,7 @@ def markdown(results: Dict[str, Any]) -> str:
     """The per-preset table, the suite means and the done-means checks."""
     table, mean, checks = results["per_preset"], results["suite_mean"], results["checks"]
     order = list(results["rows"]) + [r for r in REFERENCES if any(r in rows for rows in table.values())]
-    lines = ["## Per preset (mean over seeds)", ""] + _header(["Preset", "Variant", "seeds"])
+    lines = ["## Per preset (mean over the runs: seeds × training seeds)", ""] + _header(["Preset", "Variant", "runs"])
     for preset, rows in table.items():
         for label in order:
             if label in rows:
@@ -403,28 +421,31 @@ def main(cfg: SuiteBenchConfig) -> Dict[str, Any]:
                 continue
             if not cfg.collect_only:
                 scene = make_scene(cfg, preset, seed)
-            runs = cfg.out / preset / "runs"
             found_refs = set()
-            for label, method, ablation in chosen:
-                config_path = run_config_path(scene, label, method, runs)
-                if cfg.collect_only and not (config_path.parent / TRAIN_SECONDS_FILE).exists():
-                    results["missing"].append(f"{tag} {label}")
-                    continue
-                try:
-                    config_path, seconds = train(run_cfg, scene, label, method, ablation, runs)
-                except RuntimeError as exc:
-                    CONSOLE.log(f"[red][suite] {exc}")
-                    results["failures"].append(f"{tag} {label}: {exc}")
-                    continue
-                metrics = evaluate_cached(config_path, label)
-                row = row_of(metrics, label, seconds)
-                row.update(preset=preset, seed=seed, motion=motion_of(cfg, preset, seed))
-                results["rows"][label].append(row)
-                for ref in REFERENCES:  # the same images for every run of the scene: keep the first
-                    ref_row = None if ref in found_refs else reference_row(metrics, ref)
-                    if ref_row is not None:
-                        found_refs.add(ref)
-                        results["references"][ref].append(dict(ref_row, preset=preset, seed=seed, motion=row["motion"]))
+            for train_seed in cfg.train_seeds:
+                runs = runs_root(cfg, preset, train_seed)
+                seeded_cfg = with_train_seed(run_cfg, train_seed)
+                run_tag = tag if train_seed == DEFAULT_TRAIN_SEED else f"{tag} (training seed {train_seed})"
+                for label, method, ablation in chosen:
+                    config_path = run_config_path(scene, label, method, runs)
+                    if cfg.collect_only and not (config_path.parent / TRAIN_SECONDS_FILE).exists():
+                        results["missing"].append(f"{run_tag} {label}")
+                        continue
+                    try:
+                        config_path, seconds = train(seeded_cfg, scene, label, method, ablation, runs)
+                    except RuntimeError as exc:
+                        CONSOLE.log(f"[red][suite] {exc}")
+                        results["failures"].append(f"{run_tag} {label}: {exc}")
+                        continue
+                    metrics = evaluate_cached(config_path, label)
+                    row = row_of(metrics, label, seconds)
+                    row.update(preset=preset, seed=seed, motion=motion_of(cfg, preset, seed), train_seed=train_seed)
+                    results["rows"][label].append(row)
+                    for ref in REFERENCES:  # the same images for every run of the scene: keep the first
+                        ref_row = None if ref in found_refs else reference_row(metrics, ref)
+                        if ref_row is not None:
+                            found_refs.add(ref)
+                            results["references"][ref].append(dict(ref_row, preset=preset, seed=seed, motion=row["motion"]))
     results["references"] = {k: v for k, v in results["references"].items() if v}
     summarise(results)
     table = markdown(results)

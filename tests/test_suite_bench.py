@@ -128,7 +128,7 @@ def test_markdown_rows(suite):
     cells = [c.strip() for c in ours_static[0].strip("|").split("|")]
     header = [c.strip() for c in lines[2].strip("|").split("|")]
     by_name = dict(zip(header, cells))
-    assert by_name["seeds"] == "2" and by_name["in PSNR↑"] == "32.00" and by_name["in PSNR inside↑"] == "-"
+    assert by_name["runs"] == "2" and by_name["in PSNR↑"] == "32.00" and by_name["in PSNR inside↑"] == "-"
     assert by_name["ATE init → refined"] == "0.0400 → 0.0200" and by_name["mask mean"] == "0.020"
     # the reference rows come after the variants in every preset, and appear in the suite mean
     per_preset = lines[: lines.index(next(line for line in lines if line.startswith("## Suite mean")))]
@@ -168,6 +168,28 @@ def test_reference_row_reads_evaluate_run_metrics(suite):
     assert ref == {"input_psnr": 28.0, "input_ssim": 0.9, "input_psnr_dynamic": None, "input_psnr_static": 29.0}
     assert suite.reference_row(metrics, suite.BLURRY_REFERENCE) is None
     assert not math.isnan(ref["input_psnr"])
+
+
+def test_training_seeds_get_their_own_runs_and_are_averaged(suite, tmp_path):
+    import json
+
+    cfg = suite.SuiteBenchConfig(out=tmp_path, extra_train_args="--x 1")
+    assert suite.runs_root(cfg, "rigid", suite.DEFAULT_TRAIN_SEED) == tmp_path / "rigid" / "runs"  # as before train seeds
+    assert suite.runs_root(cfg, "rigid", 7) == tmp_path / "rigid" / "runs_train7"
+    assert suite.with_train_seed(cfg, suite.DEFAULT_TRAIN_SEED).extra_train_args == "--x 1"
+    assert suite.with_train_seed(cfg, 7).extra_train_args == "--x 1 --machine.seed 7"
+    # two training seeds of one scene: two rows, both in the preset's mean, both kept by the merge
+    rows = [dict(_row("two-objects", 0, 28.0, 22.0), train_seed=42), dict(_row("two-objects", 0, 30.0, 24.0), train_seed=7)]
+    results = suite.summarise({"rows": {suite.OURS: rows}, "references": {}})
+    assert results["per_preset"]["two-objects"][suite.OURS]["input_psnr"] == pytest.approx(29.0)
+    assert results["per_preset"]["two-objects"][suite.OURS]["n"] == 2 and "train_seed" not in results["per_preset"]["two-objects"][suite.OURS]
+    spec = importlib.util.spec_from_file_location("suite_merge", BENCHMARKS / "suite_merge.py")
+    merge_module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(merge_module)
+    (tmp_path / "a.json").write_text(json.dumps({"command": "a", "rows": {suite.OURS: rows[:1]}, "references": {}}))
+    (tmp_path / "b.json").write_text(json.dumps({"command": "b", "rows": {suite.OURS: rows[1:]}, "references": {}}))
+    merged = merge_module.merge([tmp_path / "a.json", tmp_path / "b.json"])
+    assert sorted(r["train_seed"] for r in merged["rows"][suite.OURS]) == [7, 42]
 
 
 def test_merge_keeps_the_later_run_of_each_row(suite, tmp_path):
