@@ -8,7 +8,7 @@ import torch
 from edygs_ns.losses.blur import blur_loss
 from edygs_ns.losses.events import event_loss, log_intensity, predicted_event_count
 from edygs_ns.losses.photometric import l1_dssim, latent_confidence
-from edygs_ns.losses.regularizers import mask_consistency, mask_l1, motion_loss, scale_ratio_penalty
+from edygs_ns.losses.regularizers import mask_consistency, mask_l1, motion_loss
 
 THETA = 0.2
 EPS = 1e-3
@@ -122,18 +122,6 @@ def test_motion_loss_penalises_only_the_static_part():
     assert math.isclose(motion_loss(d_xyz, d_rot, d_scale, static_vs_dynamic).item(), 1.5)
     assert motion_loss(d_xyz, d_rot, d_scale, torch.ones(2)).item() == 0.0
     assert motion_loss(d_xyz[:0], d_rot[:0], d_scale[:0], torch.ones(0)).item() == 0.0
-
-
-def test_scale_ratio_penalty_shrinks_only_needles():
-    # a round splat, one at 5:1 and one at 40:1 (log axis lengths)
-    log_scales = torch.log(torch.tensor([[0.1, 0.1, 0.1], [0.5, 0.1, 0.2], [4.0, 0.1, 0.3]])).requires_grad_(True)
-    penalty = scale_ratio_penalty(log_scales, max_ratio=10.0)
-    assert penalty.item() == pytest.approx((40.0 - 10.0) / 3, rel=1e-5)
-    penalty.backward()
-    grad = log_scales.grad
-    assert torch.all(grad[:2] == 0)  # under the bound: untouched
-    assert grad[2, 0] > 0 and grad[2, 1] < 0 and grad[2, 2] == 0  # the long axis shrinks, the short one grows
-    assert scale_ratio_penalty(torch.zeros(0, 3), 10.0).item() == 0.0
 
 
 def test_blur_loss_is_zero_when_the_latents_average_to_the_blurry_frame():

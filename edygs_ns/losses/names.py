@@ -27,8 +27,6 @@ class LossName(str, Enum):
     """the mask against the motion masks rendered at the switch"""
     MOTION = "motion"
     """size of the deformation"""
-    SCALE_RATIO = "scale_ratio"
-    """elongation of the Gaussians past a bound (opt-in: its weight is 0 by default)"""
 
 
 def loss_name(name: Union[str, LossName]) -> LossName:

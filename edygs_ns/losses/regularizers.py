@@ -1,4 +1,4 @@
-"""Mask and motion regularisers of EDyGS (paper Eq. 4, 6-8), and a bound on the Gaussians' elongation."""
+"""Mask and motion regularisers of EDyGS (paper Eq. 4, 6-8)."""
 
 from __future__ import annotations
 
@@ -44,13 +44,3 @@ def motion_loss(
     if weight is None:
         return total.mean()
     return (total * weight).sum() / weight.sum().clamp_min(1.0)
-
-
-def scale_ratio_penalty(log_scales: Float[Tensor, "N 3"], max_ratio: float) -> Tensor:
-    """Mean over Gaussians of max(0, s_max / s_min − max_ratio): keeps splats from turning into
-    needles that match the training views and streak in others (PhysGaussian's anisotropy bound,
-    also splatfacto's ``use_scale_regularization``). ``log_scales``: log of the axes' lengths."""
-    if log_scales.shape[0] == 0:
-        return log_scales.sum()
-    ratio = torch.exp(log_scales.amax(dim=-1) - log_scales.amin(dim=-1))
-    return torch.relu(ratio - max_ratio).mean()

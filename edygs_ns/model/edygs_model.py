@@ -30,7 +30,7 @@ from edygs_ns.losses.blur import blur_loss
 from edygs_ns.losses.events import DEFAULT_LOG_EPS, event_loss
 from edygs_ns.losses.names import LossName
 from edygs_ns.losses.photometric import l1_dssim, latent_confidence
-from edygs_ns.losses.regularizers import mask_consistency, mask_l1, motion_loss, scale_ratio_penalty
+from edygs_ns.losses.regularizers import mask_consistency, mask_l1, motion_loss
 from edygs_ns.model.appearance import MAX_SH_DEGREE, sh_to_rgb
 from edygs_ns.model.deformation import DeformationConfig, DeformationField, RigidMotion
 from edygs_ns.model.exposure_cache import NO_EXPOSURE, ExposureCache
@@ -123,10 +123,6 @@ class EdygsModelConfig(ModelConfig):
     """weight of ‖M − M̂‖₁ in the dynamic phase (M̂: seeding.consistency_target)"""
     lambda_motion: float = 0.1
     """weight of the motion loss ‖(1 − m)Δ‖² (dynamic phase)"""
-    lambda_scale_ratio: float = 0.0
-    """weight of the penalty on Gaussians longer than max_scale_ratio × their shortest axis (0: off)"""
-    max_scale_ratio: float = 10.0
-    """the elongation (longest / shortest axis) the scale-ratio penalty lets pass"""
     event_log_eps: Suppress[float] = DEFAULT_LOG_EPS
     """ε in ln(I + ε) of the event loss"""
     use_edi_loss: bool = True
@@ -746,8 +742,6 @@ class EdygsModel(SplatExportView):
                 m = t["deformed_mask"].detach() if cfg.detach_mask_in_motion_loss else t["deformed_mask"]
                 terms.append(motion_loss(t["d_xyz"], t["d_rot"], t["d_scale"], m, weight=t.get("deformed_weight")))
             losses["motion"] = cfg.lambda_motion * torch.stack(terms).mean()
-        if self.training and cfg.lambda_scale_ratio > 0 and is_active(LossName.SCALE_RATIO, phase):
-            losses["scale_ratio"] = cfg.lambda_scale_ratio * scale_ratio_penalty(self.gauss_params["scales"], cfg.max_scale_ratio)
         if self.training:
             self.camera_optimizer.get_loss_dict(losses)
         if not losses:

@@ -43,9 +43,9 @@ TRAINABLE: Dict[Phase, FrozenSet[str]] = {
 
 #: loss terms that are active in each phase (their weights live in the model config).
 ACTIVE_LOSSES: Dict[Phase, FrozenSet[LossName]] = {
-    Phase.POSE_INIT: frozenset({LossName.EDI, LossName.SCALE_RATIO}),
-    Phase.STATIC: frozenset({LossName.EDI, LossName.EDI_STATIC, LossName.EVENT, LossName.BLUR, LossName.MASK_L1, LossName.SCALE_RATIO}),
-    Phase.DYNAMIC: frozenset({LossName.EDI, LossName.EVENT, LossName.BLUR, LossName.MASK_CONSISTENCY, LossName.MOTION, LossName.SCALE_RATIO}),
+    Phase.POSE_INIT: frozenset({LossName.EDI}),
+    Phase.STATIC: frozenset({LossName.EDI, LossName.EDI_STATIC, LossName.EVENT, LossName.BLUR, LossName.MASK_L1}),
+    Phase.DYNAMIC: frozenset({LossName.EDI, LossName.EVENT, LossName.BLUR, LossName.MASK_CONSISTENCY, LossName.MOTION}),
 }
 
 
