@@ -72,6 +72,12 @@ class Intrinsics:
 # ----------------------------------------------------------------------------------------------
 
 
+def rotation_angle(rot: np.ndarray) -> np.ndarray:
+    """Angle in radians of rotation matrices [..., 3, 3] (in [0, pi])."""
+    cos = (np.trace(rot, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
 def to_homogeneous(c2w: Union[Tensor, np.ndarray]) -> np.ndarray:
     """Camera-to-world poses [N, 3, 4] or [N, 4, 4] (tensor or array) -> float64 [N, 4, 4]."""
     arr = c2w.detach().cpu().double().numpy() if isinstance(c2w, Tensor) else np.asarray(c2w, dtype=np.float64)

@@ -198,7 +198,7 @@ def test_novel_cameras_follow_the_training_frame():
 def test_the_frame_rotation_comes_from_the_camera_orientations():
     """Cameras on a straight line with centre noise: the centres alone cannot fix the rotation
     about the line, the cameras' orientations can."""
-    from edygs_ns.eval.trajectory import rotation_angle
+    from edygs_ns.geometry import rotation_angle
     from edygs_ns.geometry import umeyama_sim3
 
     rng = np.random.default_rng(5)
@@ -252,7 +252,7 @@ def test_novel_pose_fit_recovers_a_perturbed_camera(run_config):
 
     from edygs_ns.eval.novel_pose_fit import NovelPoseFitConfig, fit_camera_pose
     from edygs_ns.eval.pose_alignment import with_poses
-    from edygs_ns.eval.trajectory import rotation_angle
+    from edygs_ns.geometry import rotation_angle
 
     _, pipeline, _, _ = eval_setup(run_config, test_mode="inference")
     model = pipeline.model

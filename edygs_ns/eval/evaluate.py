@@ -69,8 +69,7 @@ from edygs_ns.eval.pose_alignment import (
     with_poses,
 )
 from edygs_ns.eval.report import DEFAULT_NOTES, markdown_table, write_metrics
-from edygs_ns.eval.trajectory import rotation_angle
-from edygs_ns.geometry import align_poses, apply_sim3, to_homogeneous
+from edygs_ns.geometry import align_poses, apply_sim3, rotation_angle, to_homogeneous
 from edygs_ns.losses.metrics import mask_iou, psnr, ssim
 
 EvalSplit = Literal["input", "novel", "both"]

@@ -27,8 +27,8 @@ from jaxtyping import Float
 from nerfstudio.cameras.cameras import Cameras
 from torch import Tensor
 
-from edygs_ns.eval.trajectory import rotation_angle, trajectory_metrics
-from edygs_ns.geometry import MIN_POINTS_SIM3, POSE_ROWS, POSE_SIZE, Sim3, apply_sim3, pose_sim3, to_homogeneous
+from edygs_ns.eval.trajectory import trajectory_metrics
+from edygs_ns.geometry import MIN_POINTS_SIM3, POSE_ROWS, POSE_SIZE, Sim3, apply_sim3, pose_sim3, rotation_angle, to_homogeneous
 #: Row (split) names of the pose metrics in the evaluation table.
 INITIAL_POSES_SPLIT = "poses (initial)"
 REFINED_POSES_SPLIT = "poses (refined)"

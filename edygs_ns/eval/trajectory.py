@@ -12,7 +12,7 @@ from typing import Dict, Literal, Optional, Tuple
 
 import numpy as np
 
-from edygs_ns.geometry import align_poses, check_poses
+from edygs_ns.geometry import align_poses, check_poses, rotation_angle
 
 
 def ate_rmse(c2w_est: np.ndarray, c2w_gt: np.ndarray) -> float:
@@ -29,12 +29,6 @@ def ate_rmse(c2w_est: np.ndarray, c2w_gt: np.ndarray) -> float:
     gt = np.asarray(c2w_gt, dtype=np.float64)
     err = aligned[:, :3, 3] - gt[:, :3, 3]
     return float(np.sqrt((err**2).sum(axis=1).mean()))
-
-
-def rotation_angle(rot: np.ndarray) -> np.ndarray:
-    """Angle in radians of rotation matrices [..., 3, 3] (in [0, pi])."""
-    cos = (np.trace(rot, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.arccos(np.clip(cos, -1.0, 1.0))
 
 
 def rpe(

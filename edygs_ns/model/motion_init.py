@@ -374,7 +374,7 @@ def initialise_motion(
         if len(seeds.points) == 0:
             return None
         return region, seeds, track_rigid(seeds.points, seeds.colors, seeds.radii, seeds.centre, times, evidence, latent,
-                                          statics, viewmats, Ks, k, backend, tracking)
+                                          statics, viewmats, Ks, k, backend, tracking, seeding)
 
     def diverging(k: int, parts: List[Tensor]) -> Optional[List[tuple]]:
         """The parts of latent k seeded and tracked, when at least two are and their tracks part

@@ -23,10 +23,19 @@ latent only the evidence near the object's silhouette at that start counts (anot
 evidence neither pulls the fit nor enters its loss). The track becomes the object's rigid body
 in the deformation (``deformation.RigidMotion``), places extra seeds for the parts the reference
 latent did not see (``coverage_seeds``), and its footprints say which evidence is this object's.
+
+Keyframes: the seeds are the side the reference latent saw, and an object that turns far enough
+turns them out of view, leaving the colour fit nothing to follow (the sphere's track lagged by
+30-60 degrees at the clip's ends). So each time a pass's fit has turned ``keyframe_turn`` degrees
+since its last keyframe, that latent's evidence adds seeds where none is yet (a cap at the tracked
+centre's depth, taken to the canonical frame by the latent's inverse transform); the colour fit
+renders them, the silhouette stays the reference seeds' (the outline, the footprints and the mover
+test are as without them), and each pass (later, then earlier latents) keeps only its own.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable, List, Optional, Tuple
 
@@ -36,7 +45,7 @@ from nerfstudio.cameras.lie_groups import exp_map_SO3xR3
 from torch import Tensor
 from tyro.conf import Suppress
 
-from edygs_ns.geometry import camera_centres
+from edygs_ns.geometry import camera_centres, rotation_angle
 from edygs_ns.model.dynamic_seeding import DynamicSeedingConfig, Seeds, dilate, seed_gaussians
 from edygs_ns.render.contract import RasterBackend
 
@@ -71,6 +80,9 @@ class RigidTrackConfig:
     """the silhouette's seeds turn with the fit about the line of sight (off: translated only)"""
     extrapolate: bool = False
     """start each latent's fit at the last two fits' constant velocity (not kept)"""
+    keyframe_turn: float = 30.0
+    """once the fit has turned this many degrees since the last seeding, the latent's evidence adds
+    seeds to the fitted set (the side that turned into view keeps colour to fit); 0: off"""
 
 
 #: A window (y0, y1, x0, x1) of an image: rows y0..y1-1, columns x0..x1-1.
@@ -168,6 +180,7 @@ def track_rigid(
     ref: int,
     backend: RasterBackend,
     config: RigidTrackConfig,
+    seeding: Optional[DynamicSeedingConfig] = None,
 ) -> RigidTrack:
     """Fit a rigid transform of the seeds to every latent (identity at ``ref``).
 
@@ -180,6 +193,7 @@ def track_rigid(
         backgrounds: the static model's render of every latent (the seeds are composited over it).
         viewmats: world-to-camera (OpenCV axes) of every latent; Ks: pinhole intrinsics in pixels.
         ref: the latent the seeds were back-projected from.
+        seeding: the seeds' shape and spacing for the keyframe seeds (``keyframe_turn``); None: none.
     """
     n = backgrounds.shape[0]
     device = points.device
@@ -188,19 +202,28 @@ def track_rigid(
     rotvecs = torch.zeros(n, 3, device=device)
     units = torch.zeros(n, 3, device=device)  # translation / size
     losses = torch.zeros(n, device=device)
-    quats = torch.zeros(len(points), 4, device=device)
-    quats[:, 0] = 1.0
-    scales = radii[:, None].expand(-1, 3).contiguous()
-    opacities = torch.full((len(points),), config.opacity, device=device)
+
+    def splats(radii_: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+        """Identity quaternions, isotropic scales and the tracking opacity of seeds of ``radii_``."""
+        quats_ = torch.zeros(len(radii_), 4, device=device)
+        quats_[:, 0] = 1.0
+        return quats_, radii_[:, None].expand(-1, 3).contiguous(), torch.full((len(radii_),), config.opacity, device=device)
+
+    # the silhouette is the reference seeds' (the outline the reference latent saw); the colour fit
+    # renders them plus the keyframe seeds (``keyframe_turn``)
+    outline_set = (points,) + splats(radii)
+    fit = {"points": points, "colors": colors, "radii": radii, "splats": outline_set[1:]}
     height, width = backgrounds.shape[1:3]
     dilation = max(1, int(round(config.region_dilation * width)))
     evidence = evidence.float()
     outlines = torch.zeros_like(evidence)  # this object's evidence, filled per latent
     regions = torch.zeros_like(evidence, dtype=torch.bool)
 
-    def rasterize(i: int, means: Tensor, features: Tensor, win: Optional[Window] = None):
+    def rasterize(i: int, means: Tensor, features: Tensor, win: Optional[Window] = None, fitted: bool = False):
         """The seeds at ``means`` seen from latent i: the whole image, or only the window
-        (y0, y1, x0, x1) of it (the principal point shifted; the same pixels, far fewer of them)."""
+        (y0, y1, x0, x1) of it (the principal point shifted; the same pixels, far fewer of them).
+        ``fitted``: the colour fit's seeds (else the reference seeds)."""
+        quats, scales, opacities = fit["splats"] if fitted else outline_set[1:]
         if win is None:
             return backend(means, quats, scales, opacities, features, viewmats[i : i + 1], Ks[i : i + 1], width, height)
         y0, y1, x0, x1 = win
@@ -248,8 +271,8 @@ def track_rigid(
         rendered only in ``win``, the window around its loss region (``window(i)``)."""
         y0, y1, x0, x1 = win
         region, outline = regions[i, y0:y1, x0:x1], outlines[i, y0:y1, x0:x1]
-        moved = rigid_apply(points, centre, rotation_matrices(rotvec[None]), (unit * size)[None])[0]
-        out = rasterize(i, moved, colors, win)
+        moved = rigid_apply(fit["points"], centre, rotation_matrices(rotvec[None]), (unit * size)[None])[0]
+        out = rasterize(i, moved, fit["colors"], win, fitted=True)
         composite = out.render[0] + (1.0 - out.alpha[0]) * backgrounds[i, y0:y1, x0:x1]
         loss = (composite - target[y0:y1, x0:x1]).abs()[region].mean()
         if config.silhouette_weight > 0:
@@ -258,11 +281,37 @@ def track_rigid(
             loss = loss + config.silhouette_weight * (alpha - outline)[region].abs().mean()
         return loss
 
+    def add_keyframe(i: int) -> None:
+        """Seeds for latent i's evidence of this object that no fitted seed covers: a cap at the
+        tracked centre's depth, taken to the canonical frame by latent i's inverse transform."""
+        cam_to_world = torch.linalg.inv(viewmats[i])
+        moved_centre = centre + units[i] * size
+        z_centre = float(viewmats[i][2, :3] @ moved_centre + viewmats[i][2, 3])
+        if z_centre <= 0:
+            return
+        own = outlines[i]
+        seen = seed_gaussians(own, torch.ones_like(own), latent(i), Ks[i], cam_to_world, seeding, centre_depth=z_centre)
+        if len(seen.points) == 0:
+            return
+        rotation = rotation_matrices(rotvecs[i][None])[0]
+        canonical = (seen.points - centre - units[i] * size) @ rotation + centre
+        gap = torch.cdist(canonical, fit["points"]).min(dim=1).values
+        new = gap > seeding.coverage_spacing * seen.radii
+        if bool(new.any()):
+            fit["points"] = torch.cat([fit["points"], canonical[new]])
+            fit["colors"] = torch.cat([fit["colors"], seen.colors[new]])
+            fit["radii"] = torch.cat([fit["radii"], seen.radii[new]])
+            fit["splats"] = splats(fit["radii"])
+
+    keyframes = seeding is not None and config.keyframe_turn > 0
+    key_turn = {ref: torch.zeros(3, device=device)}  # latent -> the turn at its pass's last keyframe
     focus(ref, rotvecs[ref], units[ref])
     before: dict = {}  # latent -> the neighbour it was started from
     with torch.enable_grad():
         for i, prev in visiting_order(times, ref):
             before[i] = prev
+            if prev == ref:  # each pass (later, then earlier latents) keeps only its own keyframes
+                fit.update(points=points, colors=colors, radii=radii, splats=outline_set[1:])
             focus(i, rotvecs[prev], units[prev])
             if not bool(regions[i].any()):
                 rotvecs[i], units[i] = rotvecs[prev], units[prev]
@@ -286,6 +335,18 @@ def track_rigid(
                 loss.backward()
                 optimizer.step()
             rotvecs[i], units[i] = rotvec.detach(), unit.detach()
+            if keyframes:
+                anchor = prev
+                while anchor not in key_turn:  # a latent without evidence was skipped
+                    anchor = before[anchor]
+                key = key_turn[anchor]
+                relative = rotation_matrices(torch.stack([rotvecs[i], key]))
+                turned = math.degrees(float(rotation_angle((relative[0] @ relative[1].T).cpu().numpy())))
+                if turned > config.keyframe_turn:
+                    with torch.no_grad():
+                        add_keyframe(i)
+                    key = rotvecs[i]
+                key_turn[i] = key
     footprints = torch.zeros_like(regions)
     claims = torch.zeros_like(regions)
     iou = torch.full((n,), float("nan"), device=device)
