@@ -211,8 +211,8 @@ def track_rigid(
 
     # the silhouette is the reference seeds' (the outline the reference latent saw); the colour fit
     # renders them plus the keyframe seeds (``keyframe_turn``)
-    outline_set = (points,) + splats(radii)
-    fit = {"points": points, "colors": colors, "radii": radii, "splats": outline_set[1:]}
+    outline_splats = splats(radii)
+    fit = {"points": points, "colors": colors, "radii": radii, "splats": outline_splats}
     height, width = backgrounds.shape[1:3]
     dilation = max(1, int(round(config.region_dilation * width)))
     evidence = evidence.float()
@@ -223,7 +223,7 @@ def track_rigid(
         """The seeds at ``means`` seen from latent i: the whole image, or only the window
         (y0, y1, x0, x1) of it (the principal point shifted; the same pixels, far fewer of them).
         ``fitted``: the colour fit's seeds (else the reference seeds)."""
-        quats, scales, opacities = fit["splats"] if fitted else outline_set[1:]
+        quats, scales, opacities = fit["splats"] if fitted else outline_splats
         if win is None:
             return backend(means, quats, scales, opacities, features, viewmats[i : i + 1], Ks[i : i + 1], width, height)
         y0, y1, x0, x1 = win
@@ -311,7 +311,8 @@ def track_rigid(
         for i, prev in visiting_order(times, ref):
             before[i] = prev
             if prev == ref:  # each pass (later, then earlier latents) keeps only its own keyframes
-                fit.update(points=points, colors=colors, radii=radii, splats=outline_set[1:])
+                fit.update(points=points, colors=colors, radii=radii, splats=outline_splats)
+            key_turn[i] = key_turn[prev]  # a latent without evidence keeps its neighbour's keyframe
             focus(i, rotvecs[prev], units[prev])
             if not bool(regions[i].any()):
                 rotvecs[i], units[i] = rotvecs[prev], units[prev]
@@ -336,10 +337,7 @@ def track_rigid(
                 optimizer.step()
             rotvecs[i], units[i] = rotvec.detach(), unit.detach()
             if keyframes:
-                anchor = prev
-                while anchor not in key_turn:  # a latent without evidence was skipped
-                    anchor = before[anchor]
-                key = key_turn[anchor]
+                key = key_turn[i]
                 relative = rotation_matrices(torch.stack([rotvecs[i], key]))
                 turned = math.degrees(float(rotation_angle((relative[0] @ relative[1].T).cpu().numpy())))
                 if turned > config.keyframe_turn:
