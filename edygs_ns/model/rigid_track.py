@@ -337,14 +337,12 @@ def track_rigid(
                 optimizer.step()
             rotvecs[i], units[i] = rotvec.detach(), unit.detach()
             if keyframes:
-                key = key_turn[i]
-                relative = rotation_matrices(torch.stack([rotvecs[i], key]))
+                relative = rotation_matrices(torch.stack([rotvecs[i], key_turn[i]]))
                 turned = math.degrees(float(rotation_angle((relative[0] @ relative[1].T).cpu().numpy())))
                 if turned > config.keyframe_turn:
                     with torch.no_grad():
                         add_keyframe(i)
-                    key = rotvecs[i]
-                key_turn[i] = key
+                    key_turn[i] = rotvecs[i]
     footprints = torch.zeros_like(regions)
     claims = torch.zeros_like(regions)
     iou = torch.full((n,), float("nan"), device=device)
