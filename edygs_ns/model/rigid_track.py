@@ -83,6 +83,9 @@ class RigidTrackConfig:
     keyframe_turn: float = 30.0
     """once the fit has turned this many degrees since the last seeding, the latent's evidence adds
     seeds to the fitted set (the side that turned into view keeps colour to fit); 0: off"""
+    keyframe_outline: Suppress[bool] = True
+    """a keyframe only where the turned outline still fits the object's evidence (IoU at least the
+    mover test's ``min_object_iou``), seeded inside that outline (off: the whole followed evidence)"""
 
 
 #: A window (y0, y1, x0, x1) of an image: rows y0..y1-1, columns x0..x1-1.
@@ -283,13 +286,22 @@ def track_rigid(
 
     def add_keyframe(i: int) -> None:
         """Seeds for latent i's evidence of this object that no fitted seed covers: a cap at the
-        tracked centre's depth, taken to the canonical frame by latent i's inverse transform."""
+        tracked centre's depth, taken to the canonical frame by latent i's inverse transform. With
+        ``keyframe_outline``: only where the turned outline fits the evidence, and only inside it."""
         cam_to_world = torch.linalg.inv(viewmats[i])
         moved_centre = centre + units[i] * size
         z_centre = float(viewmats[i][2, :3] @ moved_centre + viewmats[i][2, 3])
         if z_centre <= 0:
             return
         own = outlines[i]
+        if config.keyframe_outline:
+            # a squashing or hinged body's fitted turn can be its outline changing shape, and the
+            # follow zone holds a hinged neighbour's evidence: neither is the side that turned in
+            shape = silhouette(i, outline_turn(i, rotvecs[i]), units[i]) > 0.5
+            present = own > 0.5
+            if float((shape & present).sum()) < seeding.min_object_iou * float((shape | present).sum().clamp_min(1)):
+                return
+            own = own * dilate(shape, dilation)
         seen = seed_gaussians(own, torch.ones_like(own), latent(i), Ks[i], cam_to_world, seeding, centre_depth=z_centre)
         if len(seen.points) == 0:
             return
