@@ -288,3 +288,64 @@ def test_keyframe_seeds_keep_the_track_on_a_ball_that_turns_its_seen_side_away()
     ends = [0, 1, n - 2, n - 1]
     assert float(errors[30.0][ends].mean()) < 0.7 * float(errors[0.0][ends].mean()), errors
     assert float(errors[30.0].max()) < 20.0 and float(errors[0.0].max()) > 25.0, errors
+
+
+def _keyframe_run(evidence_of, outline: bool):
+    """The ball of the keyframe test above (112 degrees each way), tracked with keyframes on and the
+    outline check on or off, its evidence changed by ``evidence_of(evidence, translations)``."""
+    n, ref, spin = 15, 7, 0.28
+    _, _, _, _, translations, Ks, viewmats, latents, evidence, background = _scene(n, ref, spin)
+    seeding = DynamicSeedingConfig()
+    seeds = seed_gaussians(evidence[ref], torch.ones(H, W), latents[ref], Ks[ref], torch.eye(4), seeding,
+                           centre_depth=float(CENTRE[2]))  # the ball's seeds: from its own evidence
+    return ref, translations, track_rigid(
+        seeds.points, seeds.colors, seeds.radii, seeds.centre, torch.linspace(0, 1, n), evidence_of(evidence, translations),
+        lambda i: latents[i], background.expand(n, H, W, 3), viewmats, Ks, ref, rasterize_torch,
+        RigidTrackConfig(keyframe_turn=30.0, keyframe_outline=outline), seeding,
+    )
+
+
+def _pixel_centres(translations: torch.Tensor) -> torch.Tensor:
+    """[N, 2] (column, row) of the ball's centre in every latent (the identity cameras of ``_scene``)."""
+    centres = CENTRE + translations
+    return F * centres[:, :2] / centres[:, 2:] + torch.tensor([W / 2, H / 2])
+
+
+def test_keyframes_only_where_the_turned_outline_fits_the_evidence():
+    # far from the reference the evidence turns into a block four ball-widths across (a squashing
+    # body, or a neighbour's evidence in the follow zone): its outline no longer fits, so it adds
+    # no keyframe seeds there; the plain ball still takes keyframes at every end of the clip
+    def block(evidence, translations):
+        out = evidence.clone()
+        for i, (u, v) in enumerate(_pixel_centres(translations).round().long().tolist()):
+            if abs(i - 7) >= 3:
+                out[i, max(v - 20, 0) : v + 20, max(u - 20, 0) : u + 20] = 1.0
+        return out
+
+    far = lambda track: sorted(i for i in track.keyframes if abs(i - 7) >= 3)  # noqa: E731
+    _, _, plain = _keyframe_run(lambda evidence, _: evidence, outline=True)
+    assert any(i < 4 for i in plain.keyframes) and any(i > 10 for i in plain.keyframes), sorted(plain.keyframes)
+    _, _, checked = _keyframe_run(block, outline=True)
+    _, _, unchecked = _keyframe_run(block, outline=False)
+    assert far(checked) == [], sorted(checked.keyframes)
+    assert len(far(unchecked)) >= 2, sorted(unchecked.keyframes)
+
+
+def test_keyframe_seeds_stay_inside_the_turned_outline():
+    # a neighbour's evidence touches the ball on its right at every latent (a hinged part): the
+    # outline still fits, so keyframes are taken, but their seeds come only from the ball's outline
+    def neighbour(evidence, translations):
+        out = evidence.clone()
+        for i, (u, v) in enumerate(_pixel_centres(translations).round().long().tolist()):
+            out[i, v - 6 : v + 6, u + 9 : u + 21] = 1.0
+        return out
+
+    reach = {}
+    for outline in (True, False):
+        _, translations, track = _keyframe_run(neighbour, outline)
+        assert len(track.keyframes) >= 2, (outline, sorted(track.keyframes))
+        # the seeds' distance from the ball's centre (canonical frame, world units)
+        seeds = torch.cat(list(track.keyframes.values()))
+        reach[outline] = float((seeds - CENTRE).norm(dim=-1).max())
+    # the ball's own keyframe caps reach 1.6 radii from its centre (1.7 with the outline's dilation)
+    assert reach[True] < 1.8 * RADIUS < reach[False] - 0.5 * RADIUS, reach

@@ -66,7 +66,7 @@ track keeps training with the photometric losses.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, List, Optional, Tuple
 
 import numpy as np
@@ -429,8 +429,7 @@ def initialise_motion(
         if moved and not rigid_fit:
             # poor rigid fit: keep the track's translation as the base motion, drop its rotation (a
             # turn fitted to a changing shape is noise); the MLP residual carries the rest
-            track = RigidTrack(track.centre, torch.zeros_like(track.rotvecs), track.translations, track.loss,
-                               track.footprints, track.claims, track.iou)
+            track = replace(track, rotvecs=torch.zeros_like(track.rotvecs))
         return MotionObject(k, every, track, tracking.reach * float(distances.max()), shift_px / max(radius_px, 1e-9),
                             moved, why, path)
 

@@ -30,14 +30,17 @@ turns them out of view, leaving the colour fit nothing to follow (the sphere's t
 since its last keyframe, that latent's evidence adds seeds where none is yet (a cap at the tracked
 centre's depth, taken to the canonical frame by the latent's inverse transform); the colour fit
 renders them, the silhouette stays the reference seeds' (the outline, the footprints and the mover
-test are as without them), and each pass (later, then earlier latents) keeps only its own.
+test are as without them), and each pass (later, then earlier latents) keeps only its own. A
+keyframe is taken only where the outline turned by the fit still fits the object's evidence, and
+seeds only inside that outline: a squashing body's "turn" is its outline changing shape, and a
+hinged neighbour's evidence lies within the follow zone; neither is a side that turned into view.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Callable, List, Optional, Tuple
+from dataclasses import dataclass, field
+from typing import Callable, Dict, List, Optional, Tuple
 
 import torch
 from jaxtyping import Float
@@ -100,7 +103,9 @@ class RigidTrack:
     [N, H, W] bool the pixels near the tracked seeds in every latent, ``claims`` the wider zone
     within the follow margin (evidence there is this object's, not another's); ``iou`` [N] the intersection
     over union of the tracked seeds' silhouette, translated only, with the object's evidence (NaN
-    where the latent has none): the mover test reads it, and a turn fitted to noise must not raise it."""
+    where the latent has none): the mover test reads it, and a turn fitted to noise must not raise it.
+    ``keyframes`` maps each latent that added seeds to the colour fit to those seeds [K, 3]
+    (canonical frame, world units)."""
 
     centre: Tensor
     rotvecs: Tensor
@@ -109,6 +114,7 @@ class RigidTrack:
     footprints: Optional[Tensor] = None
     claims: Optional[Tensor] = None
     iou: Optional[Tensor] = None
+    keyframes: Dict[int, Tensor] = field(default_factory=dict)
 
     def rotations(self) -> Float[Tensor, "N 3 3"]:
         return rotation_matrices(self.rotvecs)
@@ -299,7 +305,8 @@ def track_rigid(
             # follow zone holds a hinged neighbour's evidence: neither is the side that turned in
             shape = silhouette(i, outline_turn(i, rotvecs[i]), units[i]) > 0.5
             present = own > 0.5
-            if float((shape & present).sum()) < seeding.min_object_iou * float((shape | present).sum().clamp_min(1)):
+            overlap, union = float((shape & present).sum()), float((shape | present).sum())
+            if overlap < seeding.min_object_iou * max(union, 1.0):
                 return
             own = own * dilate(shape, dilation)
         seen = seed_gaussians(own, torch.ones_like(own), latent(i), Ks[i], cam_to_world, seeding, centre_depth=z_centre)
@@ -314,8 +321,10 @@ def track_rigid(
             fit["colors"] = torch.cat([fit["colors"], seen.colors[new]])
             fit["radii"] = torch.cat([fit["radii"], seen.radii[new]])
             fit["splats"] = splats(fit["radii"])
+            added[i] = canonical[new]
 
     keyframes = seeding is not None and config.keyframe_turn > 0
+    added: Dict[int, Tensor] = {}  # latent -> the keyframe seeds it added (canonical)
     key_turn = {ref: torch.zeros(3, device=device)}  # latent -> the turn at its pass's last keyframe
     focus(ref, rotvecs[ref], units[ref])
     before: dict = {}  # latent -> the neighbour it was started from
@@ -369,7 +378,8 @@ def track_rigid(
             if bool(own.any()):
                 still = shape if turn is None else silhouette(i, None, units[i]) > 0.5
                 iou[i] = (still & own).sum() / (still | own).sum()
-    return RigidTrack(centre=centre, rotvecs=rotvecs, translations=units * size, loss=losses, footprints=footprints, claims=claims, iou=iou)
+    return RigidTrack(centre=centre, rotvecs=rotvecs, translations=units * size, loss=losses, footprints=footprints, claims=claims, iou=iou,
+                      keyframes=added)
 
 
 def coverage_seeds(
