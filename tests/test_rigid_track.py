@@ -290,15 +290,18 @@ def test_keyframe_seeds_keep_the_track_on_a_ball_that_turns_its_seen_side_away()
     assert float(errors[30.0].max()) < 20.0 and float(errors[0.0].max()) > 25.0, errors
 
 
-def _keyframe_run(evidence_of, outline: bool):
-    """The ball of the keyframe test above (112 degrees each way), tracked with keyframes on and the
-    outline check on or off, its evidence changed by ``evidence_of(evidence, translations)``."""
-    n, ref, spin = 15, 7, 0.28
+KEY_N, KEY_REF, KEY_SPIN = 15, 7, 0.28  # the keyframe tests' ball: 112 degrees each way
+
+
+def _keyframe_run(evidence_of, outline: bool) -> RigidTrack:
+    """The ball of the keyframe test above, tracked with keyframes on and the outline check on or
+    off, its evidence changed by ``evidence_of(evidence, translations)``."""
+    n, ref, spin = KEY_N, KEY_REF, KEY_SPIN
     _, _, _, _, translations, Ks, viewmats, latents, evidence, background = _scene(n, ref, spin)
     seeding = DynamicSeedingConfig()
     seeds = seed_gaussians(evidence[ref], torch.ones(H, W), latents[ref], Ks[ref], torch.eye(4), seeding,
                            centre_depth=float(CENTRE[2]))  # the ball's seeds: from its own evidence
-    return ref, translations, track_rigid(
+    return track_rigid(
         seeds.points, seeds.colors, seeds.radii, seeds.centre, torch.linspace(0, 1, n), evidence_of(evidence, translations),
         lambda i: latents[i], background.expand(n, H, W, 3), viewmats, Ks, ref, rasterize_torch,
         RigidTrackConfig(keyframe_turn=30.0, keyframe_outline=outline), seeding,
@@ -318,15 +321,17 @@ def test_keyframes_only_where_the_turned_outline_fits_the_evidence():
     def block(evidence, translations):
         out = evidence.clone()
         for i, (u, v) in enumerate(_pixel_centres(translations).round().long().tolist()):
-            if abs(i - 7) >= 3:
+            if abs(i - KEY_REF) >= 3:
                 out[i, max(v - 20, 0) : v + 20, max(u - 20, 0) : u + 20] = 1.0
         return out
 
-    far = lambda track: sorted(i for i in track.keyframes if abs(i - 7) >= 3)  # noqa: E731
-    _, _, plain = _keyframe_run(lambda evidence, _: evidence, outline=True)
+    def far(track: RigidTrack) -> list:
+        return sorted(i for i in track.keyframes if abs(i - KEY_REF) >= 3)
+
+    plain = _keyframe_run(lambda evidence, _: evidence, outline=True)
     assert any(i < 4 for i in plain.keyframes) and any(i > 10 for i in plain.keyframes), sorted(plain.keyframes)
-    _, _, checked = _keyframe_run(block, outline=True)
-    _, _, unchecked = _keyframe_run(block, outline=False)
+    checked = _keyframe_run(block, outline=True)
+    unchecked = _keyframe_run(block, outline=False)
     assert far(checked) == [], sorted(checked.keyframes)
     assert len(far(unchecked)) >= 2, sorted(unchecked.keyframes)
 
@@ -342,7 +347,7 @@ def test_keyframe_seeds_stay_inside_the_turned_outline():
 
     reach = {}
     for outline in (True, False):
-        _, translations, track = _keyframe_run(neighbour, outline)
+        track = _keyframe_run(neighbour, outline)
         assert len(track.keyframes) >= 2, (outline, sorted(track.keyframes))
         # the seeds' distance from the ball's centre (canonical frame, world units)
         seeds = torch.cat(list(track.keyframes.values()))
