@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import functools
 import math
+from typing import Tuple
 
 import pytest
 import torch
@@ -267,45 +269,44 @@ def test_outline_turns_with_an_elongated_object_turning_in_view():
     assert fits[True][1] < 0.5 and abs(fits[True][1] - fits[False][1]) < 0.1, fits  # the test's IoU: not turned
 
 
-def test_keyframe_seeds_keep_the_track_on_a_ball_that_turns_its_seen_side_away():
-    # the ball turns 112 degrees each way from the reference: the cap seeded there leaves the view,
-    # and without seeds for the side that turned in the fit has little colour left to follow and
-    # lags; with a keyframe every 30 degrees it keeps up (seeds as the motion initialisation makes them)
-    n, ref, spin = 15, 7, 0.28
-    _, _, _, rotations, _, Ks, viewmats, latents, evidence, background = _scene(n, ref, spin)
-    seeding = DynamicSeedingConfig()
-    seeds = seed_gaussians(evidence[ref], torch.ones(H, W), latents[ref], Ks[ref], torch.eye(4), seeding,
-                           centre_depth=float(CENTRE[2]))
-    errors = {}
-    for turn in (0.0, 30.0):
-        track = track_rigid(
-            seeds.points, seeds.colors, seeds.radii, seeds.centre, torch.linspace(0, 1, n), evidence,
-            lambda i: latents[i], background.expand(n, H, W, 3), viewmats, Ks, ref, rasterize_torch,
-            RigidTrackConfig(keyframe_turn=turn), seeding,
-        )
-        cos = (track.rotations() @ rotations.transpose(1, 2)).diagonal(dim1=1, dim2=2).sum(-1).sub(1).div(2)
-        errors[turn] = torch.rad2deg(cos.clamp(-1, 1).arccos())
-    ends = [0, 1, n - 2, n - 1]
-    assert float(errors[30.0][ends].mean()) < 0.7 * float(errors[0.0][ends].mean()), errors
-    assert float(errors[30.0].max()) < 20.0 and float(errors[0.0].max()) > 25.0, errors
-
-
 KEY_N, KEY_REF, KEY_SPIN = 15, 7, 0.28  # the keyframe tests' ball: 112 degrees each way
 
 
-def _keyframe_run(evidence_of, outline: bool) -> RigidTrack:
-    """The ball of the keyframe test above, tracked with keyframes on and the outline check on or
-    off, its evidence changed by ``evidence_of(evidence, translations)``."""
-    n, ref, spin = KEY_N, KEY_REF, KEY_SPIN
-    _, _, _, _, translations, Ks, viewmats, latents, evidence, background = _scene(n, ref, spin)
+@functools.lru_cache(maxsize=1)
+def _keyframe_scene():
+    """The keyframe tests' scene (``_scene`` of the ball turning KEY_SPIN per latent), made once."""
+    return _scene(KEY_N, KEY_REF, KEY_SPIN)
+
+
+def _keyframe_run(config: RigidTrackConfig, evidence_of=None) -> Tuple[RigidTrack, torch.Tensor]:
+    """The keyframe tests' ball tracked with ``config`` from seeds of its own evidence at the
+    reference (as the motion initialisation makes them), the tracked evidence changed by
+    ``evidence_of(evidence, translations)``; also the true rotations [N, 3, 3]."""
+    n, ref = KEY_N, KEY_REF
+    _, _, _, rotations, translations, Ks, viewmats, latents, evidence, background = _keyframe_scene()
     seeding = DynamicSeedingConfig()
     seeds = seed_gaussians(evidence[ref], torch.ones(H, W), latents[ref], Ks[ref], torch.eye(4), seeding,
-                           centre_depth=float(CENTRE[2]))  # the ball's seeds: from its own evidence
-    return track_rigid(
-        seeds.points, seeds.colors, seeds.radii, seeds.centre, torch.linspace(0, 1, n), evidence_of(evidence, translations),
-        lambda i: latents[i], background.expand(n, H, W, 3), viewmats, Ks, ref, rasterize_torch,
-        RigidTrackConfig(keyframe_turn=30.0, keyframe_outline=outline), seeding,
+                           centre_depth=float(CENTRE[2]))
+    tracked = evidence if evidence_of is None else evidence_of(evidence, translations)
+    track = track_rigid(
+        seeds.points, seeds.colors, seeds.radii, seeds.centre, torch.linspace(0, 1, n), tracked,
+        lambda i: latents[i], background.expand(n, H, W, 3), viewmats, Ks, ref, rasterize_torch, config, seeding,
     )
+    return track, rotations
+
+
+def test_keyframe_seeds_keep_the_track_on_a_ball_that_turns_its_seen_side_away():
+    # the ball turns 112 degrees each way from the reference: the cap seeded there leaves the view,
+    # and without seeds for the side that turned in the fit has little colour left to follow and
+    # lags; with a keyframe every 30 degrees it keeps up
+    errors = {}
+    for turn in (0.0, 30.0):
+        track, rotations = _keyframe_run(RigidTrackConfig(keyframe_turn=turn))
+        cos = (track.rotations() @ rotations.transpose(1, 2)).diagonal(dim1=1, dim2=2).sum(-1).sub(1).div(2)
+        errors[turn] = torch.rad2deg(cos.clamp(-1, 1).arccos())
+    ends = [0, 1, KEY_N - 2, KEY_N - 1]
+    assert float(errors[30.0][ends].mean()) < 0.7 * float(errors[0.0][ends].mean()), errors
+    assert float(errors[30.0].max()) < 20.0 and float(errors[0.0].max()) > 25.0, errors
 
 
 def _pixel_centres(translations: torch.Tensor) -> torch.Tensor:
@@ -328,10 +329,10 @@ def test_keyframes_only_where_the_turned_outline_fits_the_evidence():
     def far(track: RigidTrack) -> list:
         return sorted(i for i in track.keyframes if abs(i - KEY_REF) >= 3)
 
-    plain = _keyframe_run(lambda evidence, _: evidence, outline=True)
+    plain, _ = _keyframe_run(RigidTrackConfig())
     assert any(i < 4 for i in plain.keyframes) and any(i > 10 for i in plain.keyframes), sorted(plain.keyframes)
-    checked = _keyframe_run(block, outline=True)
-    unchecked = _keyframe_run(block, outline=False)
+    checked, _ = _keyframe_run(RigidTrackConfig(), block)
+    unchecked, _ = _keyframe_run(RigidTrackConfig(keyframe_outline=False), block)
     assert far(checked) == [], sorted(checked.keyframes)
     assert len(far(unchecked)) >= 2, sorted(unchecked.keyframes)
 
@@ -347,7 +348,7 @@ def test_keyframe_seeds_stay_inside_the_turned_outline():
 
     reach = {}
     for outline in (True, False):
-        track = _keyframe_run(neighbour, outline)
+        track, _ = _keyframe_run(RigidTrackConfig(keyframe_outline=outline), neighbour)
         assert len(track.keyframes) >= 2, (outline, sorted(track.keyframes))
         # the seeds' distance from the ball's centre (canonical frame, world units)
         seeds = torch.cat(list(track.keyframes.values()))

@@ -323,7 +323,7 @@ def track_rigid(
             fit["splats"] = splats(fit["radii"])
             added[i] = canonical[new]
 
-    keyframes = seeding is not None and config.keyframe_turn > 0
+    take_keyframes = seeding is not None and config.keyframe_turn > 0
     added: Dict[int, Tensor] = {}  # latent -> the keyframe seeds it added (canonical)
     key_turn = {ref: torch.zeros(3, device=device)}  # latent -> the turn at its pass's last keyframe
     focus(ref, rotvecs[ref], units[ref])
@@ -357,7 +357,7 @@ def track_rigid(
                 loss.backward()
                 optimizer.step()
             rotvecs[i], units[i] = rotvec.detach(), unit.detach()
-            if keyframes:
+            if take_keyframes:
                 relative = rotation_matrices(torch.stack([rotvecs[i], key_turn[i]]))
                 turned = math.degrees(float(rotation_angle((relative[0] @ relative[1].T).cpu().numpy())))
                 if turned > config.keyframe_turn:
